@@ -1,0 +1,39 @@
+# Quick start: `make run` trains, `make test` runs the test suite. Both build .venv first.
+# Override the torch build with e.g. `make test TORCH_SPEC='torch==2.5.1'`.
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+BIN := $(VENV)/bin
+ARGS ?=
+
+.PHONY: install run test lint bench-replay bench-learn clean
+
+$(BIN)/python:
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+
+$(VENV)/.installed: pyproject.toml | $(BIN)/python
+	$(BIN)/python -m pip install --quiet "$(TORCH_SPEC)"
+	$(BIN)/python -m pip install --quiet -e '.[dev]'
+	touch $@
+
+install: $(VENV)/.installed
+
+run: install
+	$(BIN)/tpdeb-train --env-id HalfCheetah-v5 $(ARGS)
+
+test: install
+	$(BIN)/ruff check .
+	$(BIN)/python -m pytest -q
+
+lint: install
+	$(BIN)/ruff check .
+
+bench-replay: install
+	$(BIN)/python bench/replay_ops.py
+
+bench-learn: install
+	$(BIN)/python bench/learn.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache
