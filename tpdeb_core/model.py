@@ -1,0 +1,188 @@
+"""Networks, diagonal-Gaussian helpers and the running normalisers (SPEC §2 "Policy").
+
+The normaliser state lives inside the model (as buffers), so it travels with the parameters to
+the actors and is saved in every checkpoint: a policy evaluated without its normaliser is a
+different policy.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+
+# --- diagonal Gaussian ---------------------------------------------------------------------------
+
+
+def gaussian_log_prob(
+    mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor
+) -> torch.Tensor:
+    """log N(action; mean, exp(log_std)²), summed over the last (action) dimension."""
+    z = (action - mean) * torch.exp(-log_std)
+    return (-0.5 * z.pow(2) - log_std - 0.5 * LOG_2PI).sum(-1)
+
+
+def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
+    """Entropy of a diagonal Gaussian, summed over the last dimension."""
+    return (log_std + 0.5 * (1.0 + LOG_2PI)).sum(-1)
+
+
+def gaussian_kl(
+    mean_p: torch.Tensor, log_std_p: torch.Tensor, mean_q: torch.Tensor, log_std_q: torch.Tensor
+) -> torch.Tensor:
+    """Analytic KL(p ‖ q) between diagonal Gaussians, summed over the last dimension."""
+    var_ratio = torch.exp(2.0 * (log_std_p - log_std_q))
+    mean_term = ((mean_p - mean_q) * torch.exp(-log_std_q)).pow(2)
+    return 0.5 * (var_ratio + mean_term - 1.0 - 2.0 * (log_std_p - log_std_q)).sum(-1)
+
+
+# --- running moments -----------------------------------------------------------------------------
+
+
+def batch_moments(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """(count, mean, M2) of a batch along axis 0, the unit that normalisers merge."""
+    x = np.asarray(x, dtype=np.float64)
+    x = x.reshape(x.shape[0], -1) if x.ndim > 1 else x.reshape(-1, 1)
+    mean = x.mean(axis=0)
+    m2 = ((x - mean) ** 2).sum(axis=0)
+    return float(x.shape[0]), mean, m2
+
+
+class RunningMeanStd(nn.Module):
+    """Running mean/variance, merged with Chan et al.'s parallel update.
+
+    Actors compute the moments of the data they collect; the learner merges them and ships the
+    merged state with the parameters. Stored in float64 buffers so long runs do not drift.
+    """
+
+    def __init__(self, shape: Sequence[int] | int = (), epsilon: float = 1e-8):
+        super().__init__()
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        self.epsilon = epsilon
+        self.register_buffer("count", torch.zeros((), dtype=torch.float64))
+        self.register_buffer("mean", torch.zeros(shape, dtype=torch.float64))
+        self.register_buffer("m2", torch.zeros(shape, dtype=torch.float64))
+
+    @property
+    def var(self) -> torch.Tensor:
+        if self.count.item() < 2:
+            return torch.ones_like(self.mean)
+        return self.m2 / self.count
+
+    @torch.no_grad()
+    def merge(self, count: float, mean, m2) -> None:
+        """Fold in the moments (count, mean, M2) of another sample set."""
+        if count <= 0:
+            return
+        mean_b = torch.as_tensor(np.asarray(mean), dtype=torch.float64).reshape(self.mean.shape)
+        m2_b = torch.as_tensor(np.asarray(m2), dtype=torch.float64).reshape(self.m2.shape)
+        n_a = self.count.clone()
+        n = n_a + count
+        delta = mean_b - self.mean
+        self.mean += delta * (count / n)
+        self.m2 += m2_b + delta.pow(2) * (n_a * count / n)
+        self.count.copy_(n)
+
+    def update(self, x: np.ndarray) -> None:
+        self.merge(*batch_moments(x))
+
+    def moments(self) -> tuple[float, np.ndarray, np.ndarray]:
+        return float(self.count.item()), self.mean.numpy().copy(), self.m2.numpy().copy()
+
+    def normalize(self, x: torch.Tensor, clip: float | None = None) -> torch.Tensor:
+        y = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.epsilon)
+        return y.clamp(-clip, clip) if clip is not None else y
+
+
+# --- networks ------------------------------------------------------------------------------------
+
+
+def mlp(sizes: Sequence[int], out_gain: float) -> nn.Sequential:
+    """Tanh MLP with orthogonal init; the last layer's gain sets the initial output scale."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        last = i == len(sizes) - 2
+        linear = nn.Linear(sizes[i], sizes[i + 1])
+        nn.init.orthogonal_(linear.weight, out_gain if last else math.sqrt(2.0))
+        nn.init.zeros_(linear.bias)
+        layers.append(linear)
+        if not last:
+            layers.append(nn.Tanh())
+    return nn.Sequential(*layers)
+
+
+class GaussianPolicy(nn.Module):
+    """Mean from an MLP, state-independent learned log-std (SPEC §2)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], init_log_std: float):
+        super().__init__()
+        # Gain 0.01 starts every action near 0 with the full exploration of log_std.
+        self.mean = mlp([obs_dim, *hidden, act_dim], out_gain=0.01)
+        self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
+
+    def forward(self, obs_norm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean = self.mean(obs_norm)
+        return mean, self.log_std.expand_as(mean)
+
+
+class ActorCritic(nn.Module):
+    """Policy, value and both normalisers: everything an actor needs to act and to prioritise.
+
+    `obs_rms` normalises observations; `ret_rms` tracks the discounted return whose std scales
+    rewards at learn time (rewards are stored raw and scaled with current statistics).
+    """
+
+    def __init__(
+        self,
+        obs_dim: int,
+        act_dim: int,
+        hidden: Sequence[int] = (64, 64),
+        init_log_std: float = 0.0,
+        obs_clip: float = 10.0,
+    ):
+        super().__init__()
+        self.obs_dim, self.act_dim, self.obs_clip = obs_dim, act_dim, obs_clip
+        self.policy = GaussianPolicy(obs_dim, act_dim, hidden, init_log_std)
+        self.value_net = mlp([obs_dim, *hidden, 1], out_gain=1.0)
+        self.obs_rms = RunningMeanStd(obs_dim)
+        self.ret_rms = RunningMeanStd(())
+
+    def norm_obs(self, obs_raw: torch.Tensor) -> torch.Tensor:
+        return self.obs_rms.normalize(obs_raw, self.obs_clip).to(torch.float32)
+
+    def reward_scale(self) -> float:
+        """Multiplier for raw rewards: 1 / std of the discounted return."""
+        return float(1.0 / math.sqrt(self.ret_rms.var.item() + 1e-8))
+
+    def value(self, obs_norm: torch.Tensor) -> torch.Tensor:
+        return self.value_net(obs_norm).squeeze(-1)
+
+    @torch.no_grad()
+    def act(self, obs_raw: np.ndarray, generator: torch.Generator | None = None) -> dict:
+        """Sample raw Gaussian actions for a batch of raw observations (numpy in, numpy out)."""
+        obs = self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))
+        mean, log_std = self.policy(obs)
+        noise = torch.randn(mean.shape, generator=generator)
+        action = mean + noise * torch.exp(log_std)
+        return {
+            "action": action.numpy(),
+            "mean": mean.numpy(),
+            "log_std": log_std.numpy(),
+            "logp": gaussian_log_prob(mean, log_std, action).numpy(),
+            "value": self.value(obs).numpy(),
+        }
+
+    @torch.no_grad()
+    def act_deterministic(self, obs_raw: np.ndarray) -> np.ndarray:
+        mean, _ = self.policy(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32)))
+        return mean.numpy()
+
+    @torch.no_grad()
+    def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
+        return self.value(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))).numpy()
