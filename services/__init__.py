@@ -1,0 +1,2 @@
+"""TPDEB's processes: the thin shells (config, clocks, files, signals, transport) around
+`tpdeb_core`."""

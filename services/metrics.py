@@ -1,0 +1,42 @@
+"""Run-directory metrics: one JSON object per line in metrics.jsonl plus TensorBoard events,
+both keyed by `global_step` (environment steps), with CleanRL's tag names."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from services.tb_events import EventWriter
+
+
+class MetricsWriter:
+    def __init__(self, run_dir: str | Path):
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._jsonl = open(self.run_dir / "metrics.jsonl", "a")  # noqa: SIM115
+        self._events = EventWriter(self.run_dir)
+
+    def log(self, global_step: int, values: dict[str, float]) -> None:
+        clean = {k: float(v) for k, v in values.items() if v is not None and math.isfinite(v)}
+        if not clean:
+            return
+        self._jsonl.write(json.dumps({"global_step": int(global_step), **clean}) + "\n")
+        self._events.add_scalars(clean, int(global_step))
+
+    def text(self, tag: str, text: str) -> None:
+        self._events.add_text(tag, text)
+
+    def flush(self) -> None:
+        self._jsonl.flush()
+        self._events.flush()
+
+    def close(self) -> None:
+        self.flush()
+        self._jsonl.close()
+        self._events.close()
+
+
+def read_metrics(path: str | Path) -> list[dict]:
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]

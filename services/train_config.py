@@ -1,0 +1,162 @@
+"""The training configuration shared by the single-process runner and the distributed services.
+
+Defaults are the measured starting point of SPEC §2. Flag names follow CleanRL where it has one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from services.config import ConfigError
+from tpdeb_core.fragments import PRIORITY_MODES
+from tpdeb_core.learner import LossConfig
+from tpdeb_core.rate_limiter import RateLimiter
+
+
+@dataclass
+class TrainConfig:
+    exp_name: str = "tpdeb"
+    """name of this experiment, part of the default run directory"""
+    env_id: str = "HalfCheetah-v5"
+    """gymnasium environment id (MuJoCo, continuous actions)"""
+    seed: int = 1
+    """seed of torch, numpy and every environment (env i of actor a gets seed + 1000 a + i)"""
+    total_timesteps: int = 1_000_000
+    """environment steps to train for"""
+    num_envs: int = 8
+    """environments stepped together by an actor"""
+    fragment_len: int = 64
+    """T: steps per fragment (a replay item)"""
+    learning_rate: float = 1e-3
+    """Adam learning rate"""
+    anneal_lr: bool = False
+    """anneal the learning rate linearly to 0 over total_timesteps"""
+    adam_eps: float = 1e-5
+    """Adam epsilon"""
+    batch_fragments: int = 8
+    """fragments per learner batch (B); a batch holds B·T steps"""
+    replay_ratio: float = 16.0
+    """sampled steps per inserted step (Reverb's samples_per_insert)"""
+    rate_error_buffer_steps: float = 0.0
+    """rate limiter tolerance in sampled steps; 0 picks twice the smallest deadlock-free value"""
+    learning_starts_fragments: int = 8
+    """fragments inserted before the first update"""
+    prioritized_capacity: int = 64
+    """N_p: fragments held by the prioritized buffer"""
+    uniform_capacity_steps: int = 8192
+    """N_u: steps held by the uniform FIFO buffer"""
+    zeta: float = 0.2
+    """share of each batch drawn from the prioritized buffer (0 = uniform replay only)"""
+    alpha: float = 1.0
+    """priority exponent: sampling ∝ priority^alpha"""
+    beta_start: float = 0.4
+    """initial importance-weight exponent, annealed linearly to 1 over training"""
+    priority_mode: str = "trajectory"
+    """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
+    priority_kappa: float = 0.0
+    """weight of the fragment's mean |scaled return| added to its priority"""
+    gamma: float = 0.99
+    """discount factor"""
+    rho_bar: float = 1.0
+    """V-trace ρ̄ (truncation of the importance weight in the value target)"""
+    c_bar: float = 1.0
+    """V-trace c̄ (trace cutting)"""
+    rho_pg_bar: float = 1.0
+    """V-trace ρ̄ for the policy-gradient advantage"""
+    rho_target_bar: float = 2.0
+    """IMPACT: clip of μ/π_target in the surrogate ratio"""
+    clip_coef: float = 0.2
+    """surrogate clipping ε"""
+    kl_coef: float = 0.01
+    """λ_kl: weight of KL(μ ‖ π_θ) (0 switches the KL term off)"""
+    kl_target: float = 0.0
+    """if > 0, adapt kl_coef toward this KL value instead of keeping it fixed"""
+    vf_coef: float = 0.5
+    """value loss coefficient"""
+    ent_coef: float = 0.0
+    """entropy bonus coefficient"""
+    max_grad_norm: float = 0.5
+    """gradient-norm clip"""
+    tau: float = 0.05
+    """soft target-policy update rate per learner update"""
+    norm_adv: bool = True
+    """normalise advantages per batch"""
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the policy and value MLPs"""
+    init_log_std: float = 0.0
+    """initial log standard deviation of the Gaussian policy"""
+    obs_clip: float = 10.0
+    """clip normalised observations to ±this"""
+    params_publish_interval: int = 1
+    """learner updates between parameter publications to the actors"""
+    torch_threads: int = 1
+    """torch intra-op threads (1 leaves the other core to the environments)"""
+    run_dir: str = ""
+    """run directory; empty means runs/{env_id}__{exp_name}__{seed}__{unix time}"""
+    log_interval_s: float = 5.0
+    """seconds between progress lines"""
+
+    def __post_init__(self):
+        self.hidden_sizes = tuple(self.hidden_sizes)
+        checks = [
+            (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
+            (self.num_envs >= 1, "num_envs", "must be ≥ 1"),
+            (self.fragment_len >= 2, "fragment_len", "must be ≥ 2"),
+            (self.batch_fragments >= 1, "batch_fragments", "must be ≥ 1"),
+            (self.learning_rate > 0, "learning_rate", "must be > 0"),
+            (self.prioritized_capacity >= 1, "prioritized_capacity", "must be ≥ 1"),
+            (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
+            (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
+            (self.alpha >= 0.0, "alpha", "must be ≥ 0"),
+            (self.priority_mode in PRIORITY_MODES, "priority_mode",
+             f"must be one of {', '.join(PRIORITY_MODES)}"),
+            (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
+            (self.params_publish_interval >= 1, "params_publish_interval", "must be ≥ 1"),
+            (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
+             "needs at least one positive layer size"),
+        ]
+        for ok, name, rule in checks:
+            if not ok:
+                raise ConfigError(f"{name}={getattr(self, name)!r}: {rule}")
+        if self.uniform_capacity_steps < self.fragment_len:
+            raise ConfigError(
+                f"uniform_capacity_steps={self.uniform_capacity_steps} cannot hold one fragment "
+                f"of fragment_len={self.fragment_len} steps: raise it")
+        self.loss_config()  # validates gamma, tau, ...
+        self.rate_limiter()  # refuses deadlocking replay-ratio settings
+
+    def loss_config(self) -> LossConfig:
+        names = {f.name for f in dataclasses.fields(LossConfig)}
+        try:
+            return LossConfig(**{k: v for k, v in dataclasses.asdict(self).items() if k in names})
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+    @property
+    def batch_steps(self) -> int:
+        return self.batch_fragments * self.fragment_len
+
+    def rate_limiter(self) -> RateLimiter:
+        minimum = RateLimiter.min_error_buffer(
+            self.replay_ratio, self.fragment_len, self.batch_steps) if self.replay_ratio > 0 else 0
+        error_buffer = self.rate_error_buffer_steps or 2.0 * minimum
+        capacity = self.prioritized_capacity * self.fragment_len + self.uniform_capacity_steps
+        try:
+            return RateLimiter(
+                samples_per_insert=self.replay_ratio,
+                min_size_to_sample=self.learning_starts_fragments * self.fragment_len,
+                error_buffer=error_buffer,
+                insert_steps=self.fragment_len,
+                sample_steps=self.batch_steps,
+                capacity_steps=capacity,
+            )
+        except ValueError as exc:
+            raise ConfigError(f"replay ratio settings: {exc}") from None
+
+    def default_run_dir(self) -> Path:
+        if self.run_dir:
+            return Path(self.run_dir)
+        return Path("runs") / f"{self.env_id}__{self.exp_name}__{self.seed}__{int(time.time())}"
