@@ -1,0 +1,71 @@
+import pytest
+
+from services.config import ConfigError, resolve, to_toml
+from services.train_config import TrainConfig
+
+
+def parse(argv, **kw):
+    return resolve(TrainConfig, argv, "tpdeb-train", "test", **kw)
+
+
+def test_flags_follow_cleanrl_names_and_types():
+    cfg = parse(["--env-id", "InvertedPendulum-v5", "--seed", "7", "--total-timesteps", "1e5",
+                 "--learning-rate", "3e-4", "--num-envs", "4", "--hidden-sizes", "32", "16",
+                 "--norm-adv", "false"])
+    assert cfg.env_id == "InvertedPendulum-v5" and cfg.seed == 7
+    assert cfg.total_timesteps == 100_000 and cfg.num_envs == 4
+    assert cfg.learning_rate == pytest.approx(3e-4)
+    assert cfg.hidden_sizes == (32, 16) and cfg.norm_adv is False
+
+
+def test_precedence_defaults_file_env_flags(tmp_path, monkeypatch):
+    path = tmp_path / "c.toml"
+    path.write_text('seed = 5\nzeta = 0.5\nexp_name = "from-file"\n')
+    monkeypatch.setenv("TPDEB_ZETA", "0.3")
+    monkeypatch.setenv("TPDEB_GAMMA", "0.95")
+    cfg = parse(["--config", str(path), "--gamma", "0.9"])
+    assert cfg.seed == 5 and cfg.exp_name == "from-file"  # file over defaults
+    assert cfg.zeta == pytest.approx(0.3)  # env over file
+    assert cfg.gamma == pytest.approx(0.9)  # flag over env
+
+
+def test_resolved_config_round_trips_through_toml(tmp_path):
+    cfg = parse(["--seed", "3", "--hidden-sizes", "8", "8"])
+    path = tmp_path / "config.toml"
+    path.write_text(to_toml(cfg))
+    assert parse(["--config", str(path)]) == cfg
+
+
+def test_help_shows_field_docstrings(capsys):
+    with pytest.raises(SystemExit):
+        parse(["--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "sampled steps per inserted step" in text
+    assert "--total-timesteps" in text
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--zeta", "1.5"], "zeta=1.5"),
+    (["--seed", "abc"], "seed='abc' is not a valid int"),
+    (["--priority-mode", "bogus"], "priority_mode='bogus'"),
+    (["--tau", "0"], "tau=0"),
+    (["--uniform-capacity-steps", "10"], "uniform_capacity_steps=10"),
+    (["--rate-error-buffer-steps", "5"], "replay ratio settings"),
+    (["--learning-starts-fragments", "10000"], "replay ratio settings"),
+])
+def test_bad_settings_are_refused_with_the_value(argv, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        parse(argv)
+
+
+def test_bad_config_files(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        parse(["--config", str(tmp_path / "missing.toml")])
+    bad = tmp_path / "bad.toml"
+    bad.write_text("seed = = 1")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        parse(["--config", str(bad)])
+    unknown = tmp_path / "unknown.toml"
+    unknown.write_text("sed = 1")
+    with pytest.raises(ConfigError, match="unknown setting 'sed'"):
+        parse(["--config", str(unknown)])

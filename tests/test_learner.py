@@ -1,0 +1,105 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from tests.fakes import ScriptedVectorEnv
+from tpdeb_core.fragments import Collector
+from tpdeb_core.learner import Learner, LossConfig, impact_surrogate
+from tpdeb_core.model import ActorCritic
+
+
+def fragments_and_model(n=6, seed=0):
+    torch.manual_seed(seed)
+    model = ActorCritic(3, 1)
+    envs = ScriptedVectorEnv([5, 7, 9], [True, False, False])
+    collector = Collector(envs, model, 8, 0.99, np.array([-1.0], np.float32),
+                          np.array([1.0], np.float32), seed=seed)
+    fragments = []
+    while len(fragments) < n:
+        fragments += collector.step()
+    return fragments[:n], model
+
+
+def test_impact_surrogate_matches_hand_computation():
+    logp = torch.tensor([0.0, 0.2, -0.3, 0.1])
+    behaviour = torch.tensor([0.0, 0.0, 0.0, 0.5])
+    target = torch.tensor([0.0, 0.1, 0.0, -1.0])  # last: μ/π̄ = e^1.5 > 2, so is is clipped
+    adv = torch.tensor([1.0, 1.0, -1.0, 1.0])
+    loss, log_ratio = impact_surrogate(logp, behaviour, target, adv, 0.2, 2.0)
+    is_ = np.minimum(np.exp((behaviour - target).numpy()), 2.0)
+    r = is_ * np.exp((logp - behaviour).numpy())
+    expected = -np.minimum(r * adv.numpy(), np.clip(r, 0.8, 1.2) * adv.numpy())
+    np.testing.assert_allclose(loss.numpy(), expected, rtol=1e-6)
+    np.testing.assert_allclose(log_ratio.exp().numpy(), r, rtol=1e-6)
+    # with π̄ = μ the surrogate is PPO's clipped objective on π_θ/μ
+    ppo, _ = impact_surrogate(logp, behaviour, behaviour, adv, 0.2, 2.0)
+    ratio = np.exp((logp - behaviour).numpy())
+    np.testing.assert_allclose(
+        ppo.numpy(), -np.minimum(ratio * adv.numpy(), np.clip(ratio, 0.8, 1.2) * adv.numpy()),
+        rtol=1e-6)
+
+
+def test_gradient_flows_only_through_the_learner_policy():
+    logp = torch.tensor([0.1, -0.1], requires_grad=True)
+    target = torch.tensor([0.0, 0.0], requires_grad=True)
+    loss, _ = impact_surrogate(logp, torch.zeros(2), target, torch.ones(2), 0.2, 2.0)
+    loss.sum().backward()
+    assert target.grad is None and logp.grad is not None
+
+
+def test_first_update_is_on_policy_and_target_moves_by_tau():
+    fragments, model = fragments_and_model()
+    cfg = LossConfig(tau=0.05)
+    learner = Learner(model, cfg)
+    before = [p.detach().clone() for p in learner.target_policy.parameters()]
+    keys = np.arange(len(fragments))
+    prioritized = np.array([True, False] * 3)
+    result = learner.step(fragments, keys, np.ones(len(fragments)), prioritized)
+    m = result.metrics
+    # the actor acted with exactly this model: μ = π_θ = π_θ̄, nothing clipped, no KL yet
+    assert m["losses/kl_behaviour"] == pytest.approx(0.0, abs=1e-6)
+    assert m["losses/clipfrac"] == 0.0 and m["losses/approx_kl"] == pytest.approx(0.0, abs=1e-6)
+    assert all(math.isfinite(v) for v in m.values())
+    assert learner.updates == 1
+    for old, target, new in zip(before, learner.target_policy.parameters(),
+                                model.policy.parameters(), strict=True):
+        torch.testing.assert_close(target, old + 0.05 * (new.detach() - old))
+    # new priorities only for the prioritized samples, positive
+    np.testing.assert_array_equal(result.priority_keys, keys[prioritized])
+    assert len(result.priorities) == 3 and all(p > 0 for p in result.priorities)
+
+
+def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
+    fragments, model = fragments_and_model()
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    results = {}
+    for mode in ("trajectory", "step"):
+        model.load_state_dict(state)
+        learner = Learner(model, LossConfig(priority_mode=mode))
+        results[mode] = learner.step(fragments, np.arange(6), np.ones(6), np.ones(6, bool),
+                                     step_index=np.zeros(6, np.int64))
+    for total, per_step in zip(results["trajectory"].priorities, results["step"].priorities,
+                               strict=True):
+        assert per_step.shape == (8,)
+        assert total == pytest.approx(per_step.sum(), rel=1e-5)
+
+
+def test_adaptive_kl_coefficient_moves_toward_target():
+    fragments, model = fragments_and_model()
+    learner = Learner(model, LossConfig(kl_coef=0.1, kl_target=1.0))
+    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    assert learner.kl_coef == pytest.approx(0.05)  # KL ≈ 0 < target/1.5: halved
+
+
+def test_learner_state_round_trip():
+    fragments, model = fragments_and_model()
+    learner = Learner(model, LossConfig())
+    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    other = Learner(ActorCritic(3, 1), LossConfig())
+    other.load_state_dict(learner.state_dict())
+    assert other.updates == 1
+    for a, b in zip(other.target_policy.parameters(), learner.target_policy.parameters(),
+                    strict=True):
+        torch.testing.assert_close(a, b)

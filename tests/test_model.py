@@ -1,0 +1,67 @@
+import numpy as np
+import torch
+from torch.distributions import Independent, Normal, kl_divergence
+
+from tpdeb_core.model import (
+    ActorCritic,
+    RunningMeanStd,
+    batch_moments,
+    gaussian_entropy,
+    gaussian_kl,
+    gaussian_log_prob,
+)
+
+
+def normal(mean, log_std):
+    return Independent(Normal(mean, log_std.exp()), 1)
+
+
+def test_gaussian_helpers_match_torch_distributions():
+    g = torch.Generator().manual_seed(0)
+    mean_p, mean_q = torch.randn(32, 6, generator=g), torch.randn(32, 6, generator=g)
+    log_std_p = torch.randn(32, 6, generator=g) * 0.5
+    log_std_q = torch.randn(32, 6, generator=g) * 0.5
+    action = torch.randn(32, 6, generator=g) * 3
+    p, q = normal(mean_p, log_std_p), normal(mean_q, log_std_q)
+    torch.testing.assert_close(gaussian_log_prob(mean_p, log_std_p, action), p.log_prob(action))
+    torch.testing.assert_close(gaussian_entropy(log_std_p), p.entropy())
+    torch.testing.assert_close(gaussian_kl(mean_p, log_std_p, mean_q, log_std_q),
+                               kl_divergence(p, q))
+    assert torch.all(gaussian_kl(mean_p, log_std_p, mean_p, log_std_p).abs() < 1e-6)
+
+
+def test_normaliser_merge_matches_numpy_on_concatenated_data():
+    rng = np.random.default_rng(0)
+    chunks = [rng.normal(loc=3.0, scale=s, size=(n, 5)) for s, n in [(1, 1), (2, 17), (0.1, 300),
+                                                                     (5, 2)]]
+    rms = RunningMeanStd(5)
+    for chunk in chunks:
+        rms.merge(*batch_moments(chunk))
+    data = np.concatenate(chunks)
+    np.testing.assert_allclose(rms.mean.numpy(), data.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(rms.var.numpy(), data.var(0), rtol=1e-10)
+    assert rms.count.item() == len(data)
+    # merging two normalisers (actor A and actor B) equals one over everything
+    a, b = RunningMeanStd(5), RunningMeanStd(5)
+    a.update(data[:100])
+    b.update(data[100:])
+    a.merge(*b.moments())
+    np.testing.assert_allclose(a.var.numpy(), data.var(0), rtol=1e-10)
+
+
+def test_normaliser_state_travels_with_the_model():
+    model = ActorCritic(3, 2)
+    model.obs_rms.update(np.random.default_rng(0).normal(5.0, 2.0, size=(100, 3)))
+    copy = ActorCritic(3, 2)
+    copy.load_state_dict(model.state_dict())
+    obs = np.ones((4, 3))
+    np.testing.assert_array_equal(copy.act_deterministic(obs), model.act_deterministic(obs))
+    torch.testing.assert_close(copy.obs_rms.mean, model.obs_rms.mean)
+
+
+def test_act_logp_is_of_the_raw_sample():
+    model = ActorCritic(4, 3)
+    out = model.act(np.random.default_rng(0).normal(size=(16, 4)), torch.Generator().manual_seed(1))
+    expected = normal(torch.as_tensor(out["mean"]), torch.as_tensor(out["log_std"])).log_prob(
+        torch.as_tensor(out["action"]))
+    np.testing.assert_allclose(out["logp"], expected.numpy(), rtol=1e-5)

@@ -1,0 +1,129 @@
+"""RateLimiter: deadlocking settings are refused, accepted ones never deadlock, the ratio holds."""
+
+import numpy as np
+import pytest
+
+from tpdeb_core.rate_limiter import RateLimiter
+
+
+def make(spi=4.0, min_size=256, error_buffer=None, insert_steps=64, sample_steps=512, **kw):
+    if error_buffer is None:
+        error_buffer = RateLimiter.min_error_buffer(spi, insert_steps, sample_steps)
+    return RateLimiter(
+        spi, min_size, error_buffer, insert_steps=insert_steps, sample_steps=sample_steps, **kw
+    )
+
+
+def test_min_error_buffer_is_the_larger_bound():
+    # (64*4 + 512)/2 = 384 < 512: the first-sample bound wins.
+    assert RateLimiter.min_error_buffer(4.0, 64, 512) == 512.0
+    # (64*16 + 512)/2 = 768 > 512: the deadlock bound wins.
+    assert RateLimiter.min_error_buffer(16.0, 64, 512) == 768.0
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "fragments"),
+    [
+        ({"spi": 0.0}, ["samples_per_insert", "0.0"]),
+        ({"spi": -2.0}, ["samples_per_insert", "-2.0"]),
+        ({"spi": float("inf")}, ["samples_per_insert", "inf"]),
+        ({"spi": float("nan")}, ["samples_per_insert", "nan"]),
+        ({"min_size": 0}, ["min_size_to_sample", "0"]),
+        ({"min_size": 2.5}, ["min_size_to_sample", "2.5"]),
+        ({"insert_steps": 0}, ["insert_steps", "0"]),
+        ({"sample_steps": -1}, ["sample_steps", "-1"]),
+        ({"capacity_steps": 100}, ["capacity_steps=100", "min_size_to_sample=256"]),
+        # Deadlock bound: (64*16 + 512)/2 = 768.
+        (
+            {"spi": 16.0, "error_buffer": 767.0},
+            ["error_buffer=767.0", "samples_per_insert=16.0", "insert_steps=64", "768"],
+        ),
+        # First-sample bound: sample_steps = 512 > (64*4 + 512)/2.
+        ({"error_buffer": 511.0}, ["error_buffer=511.0", "sample_steps=512", "512"]),
+        ({"error_buffer": float("nan")}, ["error_buffer=nan"]),
+    ],
+)
+def test_refuses_deadlocking_or_meaningless_settings(kwargs, fragments):
+    with pytest.raises(ValueError) as error:
+        make(**kwargs)
+    for fragment in fragments:
+        assert fragment in str(error.value)
+
+
+def test_minimum_error_buffer_is_accepted():
+    limiter = make(spi=16.0, error_buffer=768.0)
+    assert limiter.stats()["diff"] == 0.0
+
+
+def test_min_size_gates_sampling_not_inserting():
+    limiter = make(spi=1.0, min_size=256, insert_steps=64, sample_steps=64)
+    for _ in range(3):
+        assert limiter.can_insert(64)
+        assert not limiter.can_sample(64)
+        limiter.on_insert(64)
+    assert not limiter.can_sample(64)  # 192 < 256 steps
+    limiter.on_insert(64)
+    assert limiter.can_sample(64)  # first batch possible at once: error_buffer >= sample_steps
+
+
+def test_requests_larger_than_declared_are_refused():
+    limiter = make(insert_steps=64, sample_steps=512)
+    with pytest.raises(ValueError, match="65"):
+        limiter.can_insert(65)
+    with pytest.raises(ValueError, match="513"):
+        limiter.can_sample(513)
+    with pytest.raises(ValueError, match="num_steps"):
+        limiter.on_insert(0)
+
+
+@pytest.mark.parametrize("insert_bias", [0.9, 0.1])
+@pytest.mark.parametrize(
+    ("spi", "insert_steps", "sample_steps", "min_size"),
+    [
+        (16.0, 64, 512, 512),  # SPEC's starting point: 8 fragments of 64, replay ratio 16
+        (4.0, 64, 512, 256),
+        (0.25, 64, 8, 64),  # more inserted than sampled
+        (0.1, 7, 3, 10),  # a ratio that is not a binary fraction
+        (3.0, 1, 1, 1),
+    ],
+)
+def test_minimal_buffer_never_deadlocks_and_ratio_converges(
+    spi, insert_steps, sample_steps, min_size, insert_bias
+):
+    """Actors and learner at random relative speeds; a side that is refused waits its turn.
+
+    `insert_bias` is how often the actors win the race when both sides may act: one side is
+    much faster than the other, yet the limiter holds the ratio.
+    """
+    rng = np.random.default_rng(0)
+    limiter = make(spi, min_size, None, insert_steps, sample_steps)
+    for _ in range(20_000):
+        # Sizes vary up to the declared maxima (a short final fragment, a smaller batch).
+        insert_size = int(rng.integers(1, insert_steps + 1)) if rng.random() < 0.2 else insert_steps
+        sample_size = int(rng.integers(1, sample_steps + 1)) if rng.random() < 0.2 else sample_steps
+        may_insert = limiter.can_insert(insert_size)
+        may_sample = limiter.can_sample(sample_size)
+        assert may_insert or may_sample, f"deadlock at {limiter.stats()}"
+        if may_insert and (not may_sample or rng.random() < insert_bias):
+            limiter.on_insert(insert_size)
+        else:
+            limiter.on_sample(sample_size)
+    stats = limiter.stats()
+    assert stats["inserted_steps"] >= 10 * min_size
+    # |diff - offset| <= error_buffer (+ one request), so the achieved ratio is within
+    # (offset + error_buffer + one request) / inserted_steps of the target.
+    bound = (
+        spi * min_size
+        + RateLimiter.min_error_buffer(spi, insert_steps, sample_steps)
+        + spi * insert_steps
+        + sample_steps
+    ) / stats["inserted_steps"]
+    assert abs(stats["samples_per_insert_achieved"] - spi) <= bound
+    assert bound < 0.05 * spi
+
+
+def test_stats_start_at_zero():
+    stats = make().stats()
+    assert stats["inserted_steps"] == 0
+    assert stats["sampled_steps"] == 0
+    assert stats["samples_per_insert_achieved"] == 0.0
