@@ -2,3 +2,32 @@
 
 Imports numpy and msgpack only; nothing here knows about torch, Zenoh sessions or files.
 """
+
+from protocol.codec import (
+    ERROR_KINDS,
+    DecodeError,
+    check_params_shapes,
+    decode,
+    encode,
+    encoded_size_limit,
+)
+from protocol.keys import SCHEMA_VERSION, Keys
+from protocol.messages import (
+    MESSAGE_TYPES,
+    Ack,
+    Control,
+    Moments,
+    Params,
+    PriorityUpdate,
+    RunSpec,
+    SampleReply,
+    SampleRequest,
+    Stats,
+    Trajectory,
+)
+
+__all__ = [
+    "ERROR_KINDS", "MESSAGE_TYPES", "SCHEMA_VERSION", "Ack", "Control", "DecodeError", "Keys",
+    "Moments", "Params", "PriorityUpdate", "RunSpec", "SampleReply", "SampleRequest", "Stats",
+    "Trajectory", "check_params_shapes", "decode", "encode", "encoded_size_limit",
+]

@@ -1,0 +1,75 @@
+"""Every Zenoh key expression of one run (SPEC §3), built here and nowhere else."""
+
+from __future__ import annotations
+
+import re
+
+SCHEMA_VERSION = 1
+
+RUN_ID_RULE = r"[A-Za-z0-9_.-]{1,64}"
+NAME_RULE = r"[A-Za-z0-9_.-]+"  # role and ident chunks: no '/', '*', '$', '?', '#' (Zenoh syntax)
+MAX_ACTOR_ID = 2**31 - 1
+_DECIMAL = re.compile(r"0|[1-9][0-9]{0,9}")  # one spelling per id, so parse(format(n)) == n
+
+
+def check_actor_id(actor_id) -> int:
+    """The actor id as an int in [0, 2**31); ValueError with the bad value otherwise."""
+    if isinstance(actor_id, bool) or not hasattr(actor_id, "__index__"):
+        raise ValueError(f"actor_id {actor_id!r} must be an int in [0, {MAX_ACTOR_ID}]")
+    value = actor_id.__index__()  # accepts numpy integers, which services often hold
+    if not 0 <= value <= MAX_ACTOR_ID:
+        raise ValueError(f"actor_id {value} must be an int in [0, {MAX_ACTOR_ID}]")
+    return value
+
+
+def _chunk(what: str, value) -> str:
+    text = str(value)
+    if not re.fullmatch(NAME_RULE, text):
+        raise ValueError(f"{what} {value!r} must match {NAME_RULE}")
+    return text
+
+
+class Keys:
+    """Every Zenoh key expression of one run, under tpdeb/{run_id}/…"""
+
+    def __init__(self, run_id: str):
+        if not isinstance(run_id, str) or not re.fullmatch(RUN_ID_RULE, run_id):
+            raise ValueError(f"run_id {run_id!r} is invalid: it must match {RUN_ID_RULE} "
+                             "(letters, digits, '_', '.', '-'; 1 to 64 characters)")
+        self.run_id = run_id
+        self.prefix = p = f"tpdeb/{run_id}"
+        self.traj_all = f"{p}/traj/*"  # actor → replay, put
+        self.ack_all = f"{p}/ack/*"  # replay → actor, put
+        self.params = f"{p}/params"  # learner → actors, put, latest wins
+        self.params_latest = f"{p}/params/latest"  # learner's queryable for newcomers
+        self.sample = f"{p}/sample"  # learner → replay, query
+        self.priorities = f"{p}/priorities"  # learner → replay, put
+        self.spec = f"{p}/spec"  # replay's queryable
+        self.control = f"{p}/control"  # stop broadcast
+        self.stats_all = f"{p}/stats/**"
+        self.alive_all = f"{p}/alive/**"
+
+    def __repr__(self) -> str:
+        return f"Keys({self.run_id!r})"
+
+    def traj(self, actor_id: int) -> str:
+        return f"{self.prefix}/traj/{check_actor_id(actor_id)}"
+
+    def ack(self, actor_id: int) -> str:
+        return f"{self.prefix}/ack/{check_actor_id(actor_id)}"
+
+    def stats(self, role: str, ident: str | int) -> str:
+        return f"{self.prefix}/stats/{_chunk('role', role)}/{_chunk('ident', ident)}"
+
+    def alive(self, role: str, ident: str | int) -> str:
+        return f"{self.prefix}/alive/{_chunk('role', role)}/{_chunk('ident', ident)}"
+
+    def actor_id_of(self, key: str) -> int | None:
+        """The actor id in this run's …/traj/{n} or …/ack/{n}; None for any other key."""
+        key = str(key)  # a Zenoh KeyExpr prints as its text
+        for topic in ("traj", "ack"):
+            head = f"{self.prefix}/{topic}/"
+            if key.startswith(head) and _DECIMAL.fullmatch(key[len(head):]):
+                value = int(key[len(head):])
+                return value if value <= MAX_ACTOR_ID else None
+        return None

@@ -1,0 +1,219 @@
+"""Every message of TPDEB's wire (SPEC §3): one dataclass each, a rule on every field.
+
+Array shapes name their dimensions. T (steps per fragment), obs_dim and act_dim come from the run
+spec when the decoder has one; otherwise, like B, K, n and k, they are sized by the first field
+that uses them and every other field must agree. Rules spanning several fields live in each
+class's `cross_check`. Classes holding arrays compare by identity (eq=False): dataclass equality
+on numpy fields would raise instead of answering.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from protocol.keys import MAX_ACTOR_ID, NAME_RULE, SCHEMA_VERSION
+from protocol.schema import (
+    Array,
+    Bool,
+    DecodeError,
+    DictOf,
+    Float,
+    Int,
+    ListOf,
+    Nested,
+    OrNone,
+    Scalar,
+    Scope,
+    Str,
+)
+
+F4, F8, I4, I8, B1 = "<f4", "<f8", "<i4", "<i8", "|b1"
+PRIORITY_MODES = ("trajectory", "step", "none")  # as tpdeb_core.replay, which we may not import
+CONTROL_COMMANDS = ("stop",)
+MAX_BATCH_SIZE = 4096
+
+
+def wire(rule, **kwargs):
+    """A dataclass field that carries its wire rule."""
+    return field(metadata={"rule": rule}, **kwargs)
+
+
+@dataclass(eq=False)
+class RunSpec:
+    """What all peers of a run must agree on; served by the replay, a mismatch is refused."""
+
+    env_id: str = wire(Str(min_len=1, max_len=128))
+    obs_dim: int = wire(Int(ge=1, le=2**20, dim="obs_dim"))
+    act_dim: int = wire(Int(ge=1, le=2**16, dim="act_dim"))
+    fragment_len: int = wire(Int(ge=1, le=2**16, dim="T"))
+    hidden_sizes: list[int] = wire(ListOf(Int(ge=1, le=2**16), max_len=16))
+    gamma: float = wire(Float(ge=0.0, le=1.0))
+    obs_clip: float = wire(Float(gt=0.0))
+    init_log_std: float = wire(Float())
+    priority_mode: str = wire(Str(choices=PRIORITY_MODES))
+    priority_kappa: float = wire(Float(ge=0.0))
+    action_low: np.ndarray = wire(Array(F4, "act_dim"))  # float32[act_dim]
+    action_high: np.ndarray = wire(Array(F4, "act_dim"))
+    schema_version: int = wire(Int(), default=SCHEMA_VERSION)
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        if self.schema_version != SCHEMA_VERSION:
+            raise DecodeError("version", f"{where}: schema version {self.schema_version}, "
+                                         f"this peer speaks {SCHEMA_VERSION}")
+        if (self.action_low > self.action_high).any():
+            raise DecodeError("value", f"{where}: action_low > action_high")
+
+
+@dataclass(eq=False)
+class Trajectory:
+    """One fragment: T steps of one env of one actor (SPEC §2 "Fragments")."""
+
+    actor_id: int = wire(Int(le=MAX_ACTOR_ID))
+    seq: int = wire(Int())  # per-actor sequence number: acks and de-duplication
+    env_index: int = wire(Int(le=MAX_ACTOR_ID))
+    policy_version: int = wire(Int())
+    reward_scale: float = wire(Float(gt=0.0))
+    obs: np.ndarray = wire(Array(F4, "T+1 obs_dim"))  # raw; the last row is the bootstrap obs
+    actions: np.ndarray = wire(Array(F4, "T act_dim"))  # raw Gaussian samples
+    rewards: np.ndarray = wire(Array(F4, "T"))  # raw
+    terminated: np.ndarray = wire(Array(B1, "T"))
+    truncated: np.ndarray = wire(Array(B1, "T"))
+    behaviour_mean: np.ndarray = wire(Array(F4, "T act_dim"))
+    behaviour_log_std: np.ndarray = wire(Array(F4, "T act_dim"))
+    behaviour_logp: np.ndarray = wire(Array(F4, "T"))
+    values: np.ndarray = wire(Array(F4, "T+1"))
+    trunc_index: np.ndarray = wire(Array(I4, "K", ge=0))  # truncated steps, ascending
+    trunc_obs: np.ndarray = wire(Array(F4, "K obs_dim"))  # their real final observations
+    disc_returns: np.ndarray = wire(Array(F4, "T"))
+    td_abs: np.ndarray = wire(Array(F4, "T", ge=0.0))  # |δ_t|: the initial priority
+
+    @property
+    def num_steps(self) -> int:
+        return int(self.rewards.shape[0])
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        steps, index = self.num_steps, self.trunc_index
+        if steps < 1:
+            raise DecodeError("shape", f"{where}: a fragment needs at least one step")
+        if index.size and (index[-1] >= steps or (np.diff(index) <= 0).any()):
+            raise DecodeError("value", f"{where}.trunc_index must be strictly increasing steps "
+                                       f"in [0, {steps})")
+        # The learner bootstraps those steps from trunc_obs: they must really be truncations.
+        if not self.truncated[index].all():
+            raise DecodeError("value", f"{where}.trunc_index names steps that are not truncated")
+
+
+@dataclass(eq=False)
+class Ack:
+    """Replay → actor: these sequence numbers are stored (or were duplicates); stop resending."""
+
+    actor_id: int = wire(Int(le=MAX_ACTOR_ID))
+    seqs: np.ndarray = wire(Array(I8, "n", ge=0))
+    ingested: int = wire(Int())  # fragments from this actor the replay has ingested in total
+
+
+@dataclass(eq=False)
+class Params:
+    """Learner → actors: the model's state_dict as numpy (normaliser included), versioned."""
+
+    version: int = wire(Int())
+    arrays: dict[str, np.ndarray] = wire(DictOf(Str(min_len=1), Array("<f4 <f8 <i8", "*")))
+    source: str = wire(Str(), default="learner")
+
+
+@dataclass
+class SampleRequest:
+    """Learner → replay query for a batch of fragments."""
+
+    request_id: int = wire(Int())
+    batch_size: int = wire(Int(ge=1, le=MAX_BATCH_SIZE))
+    beta: float = wire(Float(ge=0.0, le=1.0))  # importance-weight exponent
+
+
+@dataclass(eq=False)
+class Moments:
+    """Sufficient statistics of a running mean/variance, merged with Chan's parallel formula."""
+
+    count: float = wire(Float(ge=0.0))
+    mean: np.ndarray = wire(Array(F8, "*"))
+    m2: np.ndarray = wire(Array(F8, "*", ge=0.0))  # sum of squared deviations from the mean
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        if self.mean.shape != self.m2.shape:
+            raise DecodeError("shape", f"{where}: mean {self.mean.shape} but m2 {self.m2.shape}")
+
+
+@dataclass(eq=False)
+class SampleReply:
+    """Replay → learner: a batch (prioritized items first) or, when not ready, why not."""
+
+    request_id: int = wire(Int())
+    ready: bool = wire(Bool())
+    keys: np.ndarray = wire(Array(I8, "B", ge=0))
+    weights: np.ndarray = wire(Array(F4, "B", ge=0.0))  # importance weights, 1.0 for uniform
+    from_prioritized: np.ndarray = wire(Array(B1, "B"))
+    step_index: np.ndarray = wire(Array(I8, "B", ge=-1))  # drawn step in "step" mode, else -1
+    fragments: list[Trajectory] = wire(ListOf(Nested(Trajectory), dim="B"))
+    inserted_steps: int = wire(Int())
+    obs_moments: Moments | None = wire(OrNone(Nested(Moments)))
+    ret_moments: Moments | None = wire(OrNone(Nested(Moments)))
+    reason: str = wire(Str(), default="")
+
+    @classmethod
+    def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0) -> SampleReply:
+        """The empty reply: no batch, and why (e.g. "rate limiter")."""
+        return cls(request_id, False, np.zeros(0, np.int64), np.zeros(0, np.float32),
+                   np.zeros(0, bool), np.zeros(0, np.int64), [], inserted_steps, None, None,
+                   reason)
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        if not self.ready and (self.fragments or not self.reason):
+            raise DecodeError("value", f"{where}: a reply that is not ready carries no batch and "
+                                       "says why")
+        shapes = {(f.obs.shape, f.actions.shape) for f in self.fragments}
+        if len(shapes) > 1:  # the learner stacks them into one [B, T] batch
+            raise DecodeError("shape", f"{where}.fragments differ in shape: {sorted(shapes)}")
+        steps = np.array([f.num_steps for f in self.fragments], dtype=np.int64)
+        if (self.step_index >= steps).any():
+            raise DecodeError("value", f"{where}.step_index beyond its fragment's steps")
+        obs_dim = scope.get("obs_dim")
+        if self.obs_moments is not None and obs_dim is not None \
+                and self.obs_moments.mean.shape != (obs_dim,):
+            raise DecodeError("shape", f"{where}.obs_moments: mean {self.obs_moments.mean.shape}, "
+                                       f"expected ({obs_dim},)")
+
+
+@dataclass(eq=False)
+class PriorityUpdate:
+    """Learner → replay: new priorities for fragment keys (per step in "step" mode)."""
+
+    keys: np.ndarray = wire(Array(I8, "n", ge=0))
+    priorities: np.ndarray = wire(Array(F8, "n | n T", ge=0.0))
+
+
+@dataclass(eq=False)
+class Stats:
+    """Any process → monitors: scalar metrics and finished episodes since the last Stats."""
+
+    role: str = wire(Str(min_len=1, max_len=64, pattern=NAME_RULE))
+    ident: str = wire(Str(min_len=1, max_len=64, pattern=NAME_RULE))
+    values: dict[str, float | int | str] = wire(DictOf(Str(min_len=1, max_len=128), Scalar()))
+    episode_returns: np.ndarray = wire(Array(F8, "k"),
+                                       default_factory=lambda: np.zeros(0, np.float64))
+    episode_lengths: np.ndarray = wire(Array(I8, "k", ge=0),
+                                       default_factory=lambda: np.zeros(0, np.int64))
+
+
+@dataclass
+class Control:
+    """A broadcast to every process of the run."""
+
+    command: str = wire(Str(choices=CONTROL_COMMANDS))
+    reason: str = wire(Str(), default="")
+
+
+MESSAGE_TYPES: dict[str, type] = {cls.__name__: cls for cls in (
+    RunSpec, Trajectory, Ack, Params, SampleRequest, SampleReply, Moments, PriorityUpdate, Stats,
+    Control)}
