@@ -1,7 +1,245 @@
-"""`tpdeb-actor`: not shipped in this release (see services/pending.py)."""
+"""`tpdeb-actor`: steps a vector env with the latest parameters and sends fragments up.
 
-from services.pending import not_available
+Delivery: every fragment gets a per-actor sequence number and stays in the outbox until the
+replay server acknowledges it; unacknowledged ones are resent after `resend_after_s` (the
+replay de-duplicates). A full outbox makes the actor wait: back-pressure instead of loss.
+New parameters arrive on a subscriber that only keeps the latest bytes; the loop loads them
+between env steps, so the actor never stalls on the network.
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+import time
+
+import numpy as np
+import torch
+
+from protocol import (
+    Ack,
+    Control,
+    DecodeError,
+    Keys,
+    Params,
+    Stats,
+    decode,
+    encode,
+)
+from services.config import ConfigError, resolve
+from services.envs import make_vector_env, space_dims
+from services.serial import seed_everything
+from services.service_config import ActorServiceConfig
+from services.wire import fragment_to_message, load_params, model_for, spec_mismatch
+from services.zsession import (
+    RateLimitedLog,
+    StopSignal,
+    fail,
+    fetch_spec,
+    open_for,
+    say,
+)
+from tpdeb_core.fragments import Collector
+
+PROG = "tpdeb-actor"
 
 
-def main() -> int:
-    return not_available("tpdeb-actor")
+class Outbox:
+    """Sent-but-unacknowledged fragments by sequence number (thread-safe)."""
+
+    def __init__(self, capacity: int):
+        self.capacity = capacity
+        self._items: dict[int, list] = {}  # seq -> [payload, last_sent]
+        self._cond = threading.Condition()
+        self.acked = 0
+
+    def add(self, seq: int, payload: bytes, now: float) -> None:
+        with self._cond:
+            self._items[seq] = [payload, now]
+
+    def ack(self, seqs) -> None:
+        with self._cond:
+            for seq in seqs:
+                if self._items.pop(int(seq), None) is not None:
+                    self.acked += 1
+            self._cond.notify_all()
+
+    def wait_for_room(self, timeout_s: float) -> bool:
+        with self._cond:
+            return self._cond.wait_for(lambda: len(self._items) < self.capacity, timeout_s)
+
+    def due(self, now: float, after_s: float) -> list[tuple[int, bytes]]:
+        """Entries unacknowledged for `after_s`; their clocks restart."""
+        with self._cond:
+            out = [(seq, item[0]) for seq, item in self._items.items() if now - item[1] > after_s]
+            for seq, _ in out:
+                self._items[seq][1] = now
+            return out
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._items)
+
+
+class ActorService:
+    def __init__(self, config: ActorServiceConfig, spec, envs, session, stop: StopSignal):
+        self.config, self.spec, self.envs, self.session, self.stop = (
+            config, spec, envs, session, stop)
+        self.keys = Keys(config.run_id)
+        self.log_bad = RateLimitedLog(PROG)
+        self.model = model_for(spec)
+        self.collector = Collector(
+            envs, self.model, spec.fragment_len, spec.gamma, spec.action_low, spec.action_high,
+            seed=config.seed + 1000 * config.actor_id, actor_id=config.actor_id)
+        self.outbox = Outbox(config.outbox_fragments)
+        self.sent = self.resent = 0
+        self.latest_params: bytes | None = None
+        self.params_lock = threading.Lock()
+        s, k = session, self.keys
+        self.traj_publisher = s.declare_publisher(k.traj(config.actor_id))
+        self.stats_publisher = s.declare_publisher(k.stats("actor", config.actor_id))
+        self.subscribers = [
+            s.declare_subscriber(k.params, self._on_params),
+            s.declare_subscriber(k.ack(config.actor_id), self._on_ack),
+            s.declare_subscriber(k.control, self._on_control),
+        ]
+        self.token = s.liveliness().declare_token(k.alive("actor", config.actor_id))
+
+    # -- callbacks (Zenoh threads): store, never block
+    def _on_params(self, sample) -> None:
+        with self.params_lock:
+            self.latest_params = sample.payload.to_bytes()
+
+    def _on_ack(self, sample) -> None:
+        try:
+            ack = decode(sample.payload.to_bytes(), Ack)
+        except DecodeError as exc:
+            self.log_bad(exc.kind, f"dropped a bad ack ({exc})")
+            return
+        self.outbox.ack(ack.seqs.tolist())
+
+    def _on_control(self, sample) -> None:
+        try:
+            if decode(sample.payload.to_bytes(), Control).command == "stop":
+                self.stop.set("stop message")
+        except DecodeError as exc:
+            self.log_bad(exc.kind, f"dropped a bad control message ({exc})")
+
+    # -- parameters
+    def wait_for_params(self) -> None:
+        """Block until the learner's first parameters arrive (queried, then subscribed)."""
+        deadline = time.monotonic() + self.config.connect_timeout_s
+        while not self.stop and time.monotonic() < deadline:
+            if self.latest_params is None:
+                for reply in self.session.get(self.keys.params_latest, timeout=2.0):
+                    if reply.ok is not None:
+                        self._on_params(reply.ok)
+            if self.refresh_params():
+                return
+            self.stop.wait(0.2)
+        if not self.stop:
+            raise ConfigError(f"no parameters from a learner of run {self.config.run_id!r} "
+                              f"within {self.config.connect_timeout_s:g} s (is tpdeb-learner "
+                              "running?)")
+
+    def refresh_params(self) -> bool:
+        with self.params_lock:
+            data, self.latest_params = self.latest_params, None
+        if data is None:
+            return False
+        try:
+            message = decode(data, Params, max_bytes=self.config.max_message_bytes)
+            if message.version < self.collector.policy_version:
+                return False  # an older publication overtaken by a newer one
+            load_params(self.model, message)
+        except DecodeError as exc:
+            self.log_bad(exc.kind, f"dropped bad parameters ({exc})")
+            return False
+        self.collector.policy_version = message.version
+        return True
+
+    # -- the loop
+    def run(self) -> None:
+        cfg = self.config
+        self.wait_for_params()
+        say(PROG, f"actor {cfg.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
+                  f"v{self.collector.policy_version}")
+        last_stats = last_check = time.monotonic()
+        last_steps = 0
+        while not self.stop:
+            self.refresh_params()
+            for fragment in self.collector.step():
+                self.send(fragment)
+            now = time.monotonic()
+            if now - last_check >= 0.5:
+                self.resend_due(now)
+                last_check = now
+            if now - last_stats >= cfg.stats_interval_s:
+                steps = self.collector.env_steps
+                self.publish_stats((steps - last_steps) / (now - last_stats))
+                last_stats, last_steps = now, steps
+
+    def send(self, fragment) -> None:
+        while not self.stop and not self.outbox.wait_for_room(0.5):
+            self.resend_due(time.monotonic())  # back-pressure: wait for acks, resend the lost
+        payload = encode(fragment_to_message(fragment, self.model.reward_scale()))
+        self.outbox.add(fragment.seq, payload, time.monotonic())
+        self.traj_publisher.put(payload)
+        self.sent += 1
+
+    def resend_due(self, now: float) -> None:
+        for _, payload in self.outbox.due(now, self.config.resend_after_s):
+            self.traj_publisher.put(payload)
+            self.resent += 1
+
+    def publish_stats(self, sps: float) -> None:
+        episodes = self.collector.episodes
+        self.collector.episodes = []
+        self.stats_publisher.put(encode(Stats(
+            role="actor", ident=str(self.config.actor_id),
+            values={"env_steps": self.collector.env_steps, "sps": sps,
+                    "param_version": self.collector.policy_version, "sent": self.sent,
+                    "acked": self.outbox.acked, "resent": self.resent,
+                    "outbox": len(self.outbox)},
+            episode_returns=np.array([r for r, _ in episodes], np.float64),
+            episode_lengths=np.array([n for _, n in episodes], np.int64))))
+
+    def close(self) -> None:
+        self.token.undeclare()
+        self.envs.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    torch.set_num_threads(1)
+    try:
+        config = resolve(ActorServiceConfig, argv, PROG,
+                         "TPDEB actor: steps environments, sends fragments to the replay server.")
+        seed_everything(config.seed + 1000 * config.actor_id)
+        envs = make_vector_env(config.env_id, config.num_envs)  # an unknown env id fails here
+        obs_dim, act_dim, _, _ = space_dims(envs)
+        session = open_for(config)
+    except ConfigError as exc:
+        return fail(PROG, exc)
+    stop = StopSignal().install()
+    service = None
+    try:
+        spec = fetch_spec(session, Keys(config.run_id), config.connect_timeout_s, stop)
+        problem = spec_mismatch(spec, config.env_id, obs_dim, act_dim)
+        if problem:
+            raise ConfigError(f"run spec mismatch: {problem}")
+        service = ActorService(config, spec, envs, session, stop)
+        service.run()
+    except ConfigError as exc:
+        return fail(PROG, exc)
+    finally:
+        if service is not None:
+            service.close()
+        session.close()
+    say(PROG, f"actor {config.actor_id} stopped ({stop.reason}): {service.collector.env_steps:,} "
+              f"steps, {service.sent} fragments sent, {service.outbox.acked} acknowledged, "
+              f"{service.resent} resent")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import tempfile
 from pathlib import Path
@@ -30,3 +31,11 @@ def load(path: str | Path) -> dict:
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     return torch.load(path, map_location="cpu", weights_only=False)
+
+
+def save_training(run_dir: str | Path, learner, config, global_step: int, tag: str) -> Path:
+    """The learner's full state as `{tag}_{updates}_{global_step}.pt` (train, env steps)."""
+    state = {**learner.state_dict(), "config": dataclasses.asdict(config),
+             "global_step": int(global_step), "version": learner.updates}
+    name = f"{tag}_{learner.updates}_{int(global_step)}.pt"
+    return save_atomic(state, Path(run_dir) / "checkpoints" / name)

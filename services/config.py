@@ -59,7 +59,7 @@ def _field_type(cls, name: str):
     return hint, None
 
 
-def _coerce(cls, name: str, value, source: str):
+def coerce(cls, name: str, value, source: str):
     kind, item = _field_type(cls, name)
     try:
         if kind is list:
@@ -137,13 +137,13 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, section: s
                 if isinstance(value, dict):  # other services' sections
                     continue
                 raise ConfigError(f"--config {config_path}: unknown setting {key!r}")
-            values[key] = _coerce(cls, key, value, f"--config {config_path}")
+            values[key] = coerce(cls, key, value, f"--config {config_path}")
     for name in names:
         env_value = os.environ.get(ENV_PREFIX + name.upper())
         if env_value is not None:
-            values[name] = _coerce(cls, name, env_value, ENV_PREFIX + name.upper())
+            values[name] = coerce(cls, name, env_value, ENV_PREFIX + name.upper())
     for name, value in args.items():
-        values[name] = _coerce(cls, name, value, "--" + name.replace("_", "-"))
+        values[name] = coerce(cls, name, value, "--" + name.replace("_", "-"))
     try:
         return cls(**values)
     except ConfigError:

@@ -1,7 +1,291 @@
-"""`tpdeb-learner`: not shipped in this release (see services/pending.py)."""
+"""`tpdeb-learner`: trains on batches sampled from the replay server and publishes parameters.
 
-from services.pending import not_available
+Several sample requests stay in flight (one fetch thread each) so a batch is usually waiting
+when an update ends. The loop: take a batch → merge the normaliser moments it carries → one
+`Learner.step` → send new priorities → publish parameters every `params_publish_interval`
+updates. Global steps are the replay's ingested env steps; at `total_timesteps` the learner
+writes its final checkpoint and tells every process of the run to stop.
+"""
+
+from __future__ import annotations
+
+import queue
+import sys
+import threading
+import time
+from collections import deque
+
+import numpy as np
+
+from protocol import (
+    Control,
+    DecodeError,
+    Keys,
+    PriorityUpdate,
+    RunSpec,
+    SampleReply,
+    SampleRequest,
+    Stats,
+    decode,
+    encode,
+)
+from services.checkpoint import save_training
+from services.config import ConfigError, resolve, to_toml
+from services.metrics import MetricsWriter
+from services.serial import hyperparameter_table, seed_everything
+from services.service_config import LearnerServiceConfig
+from services.wire import finite_values, message_to_fragment, model_for, params_message
+from services.zsession import (
+    RateLimitedLog,
+    StopSignal,
+    fail,
+    fetch_spec,
+    open_for,
+    say,
+)
+from tpdeb_core.learner import Learner
+
+PROG = "tpdeb-learner"
 
 
-def main() -> int:
-    return not_available("tpdeb-learner")
+class LearnerService:
+    def __init__(self, config: LearnerServiceConfig, spec: RunSpec, session, stop: StopSignal):
+        self.config, self.spec, self.session, self.stop = config, spec, session, stop
+        self.keys = Keys(config.run_id)
+        seed_everything(config.seed)
+        self.model = model_for(spec)
+        self.learner = Learner(self.model, config.loss_config())
+        self.run_dir = config.default_run_dir()
+        self.metrics = MetricsWriter(self.run_dir)
+        self.log_bad = RateLimitedLog(PROG)
+        self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
+        self.stats_inbox: queue.Queue = queue.Queue()
+        self.global_step = 0
+        self.replay_stats: dict = {}
+        self.actor_versions: dict[str, int] = {}
+        self.recent_returns: deque[float] = deque(maxlen=20)
+        self.sums: dict[str, float] = {}
+        self.count = 0
+        self.wait_s = self.update_s = 0.0
+        self.params_bytes = b""
+        self.params_lock = threading.Lock()
+        s, k = session, self.keys
+        self.params_publisher = s.declare_publisher(k.params)
+        self.priorities_publisher = s.declare_publisher(k.priorities)
+        self.control_publisher = s.declare_publisher(k.control)
+        self.stats_publisher = s.declare_publisher(k.stats("learner", 0))
+        self.latest_queryable = s.declare_queryable(k.params_latest, self._answer_latest)
+        self.stats_subscriber = s.declare_subscriber(k.stats_all, self.stats_inbox.put)
+        self.token = s.liveliness().declare_token(k.alive("learner", 0))
+        self.fetchers = [threading.Thread(target=self._fetch_loop, args=(i,), daemon=True,
+                                          name=f"fetch-{i}")
+                         for i in range(config.requests_in_flight)]
+
+    # -- parameters down
+    def publish_params(self) -> None:
+        data = encode(params_message(self.model, self.learner.updates))
+        with self.params_lock:
+            self.params_bytes = data
+        self.params_publisher.put(data)
+
+    def _answer_latest(self, query) -> None:
+        with self.params_lock:
+            data = self.params_bytes
+        if data:
+            query.reply(self.keys.params_latest, data)
+
+    # -- batches in
+    def beta(self) -> float:
+        progress = min(1.0, self.global_step / self.config.total_timesteps)
+        return self.config.beta_start + (1.0 - self.config.beta_start) * progress
+
+    def _fetch_loop(self, slot: int) -> None:
+        request_id = slot
+        while not self.stop:
+            request_id += self.config.requests_in_flight
+            request = SampleRequest(request_id=request_id, batch_size=self.config.batch_fragments,
+                                    beta=self.beta())
+            got = False
+            for reply in self.session.get(self.keys.sample, payload=encode(request),
+                                          timeout=self.config.request_timeout_s):
+                if reply.ok is None:
+                    continue
+                try:
+                    batch = decode(reply.ok.payload.to_bytes(), SampleReply, self.spec,
+                                   self.config.max_message_bytes)
+                except DecodeError as exc:
+                    self.log_bad(exc.kind, f"dropped a bad sample reply ({exc})")
+                    continue
+                got = batch.ready
+                self.global_step = max(self.global_step, batch.inserted_steps)
+                if batch.ready:
+                    while not self.stop:
+                        try:
+                            self.batches.put(batch, timeout=0.1)
+                            break
+                        except queue.Full:
+                            pass
+            if not got:
+                self.stop.wait(0.02)  # replay absent or rate-limited: do not spin
+
+    # -- the loop
+    def run(self) -> bool:
+        cfg = self.config
+        (self.run_dir / "config.toml").write_text(to_toml(cfg))
+        self.metrics.text("hyperparameters", hyperparameter_table(cfg))
+        self.publish_params()
+        for fetcher in self.fetchers:
+            fetcher.start()
+        say(PROG, f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
+                  f"steps; run dir {self.run_dir}")
+        start = last_log = last_stats = time.monotonic()
+        last_step = stats_step = 0
+        while not self.stop and self.global_step < cfg.total_timesteps:
+            waited = time.perf_counter()
+            try:
+                batch = self.batches.get(timeout=0.1)
+            except queue.Empty:
+                batch = None
+            self.wait_s += time.perf_counter() - waited
+            if batch is not None:
+                self.train_on(batch)
+            self.drain_stats()
+            now = time.monotonic()
+            if now - last_stats >= cfg.stats_interval_s:
+                self.publish_stats((self.global_step - stats_step) / (now - last_stats))
+                last_stats, stats_step = now, self.global_step
+            if now - last_log >= cfg.log_interval_s:
+                self.log_progress((self.global_step - last_step) / (now - last_log))
+                last_log, last_step = now, self.global_step
+        finished = self.global_step >= cfg.total_timesteps
+        elapsed = time.monotonic() - start
+        self.log_progress(self.global_step / max(elapsed, 1e-9))
+        return finished
+
+    def train_on(self, batch: SampleReply) -> None:
+        cfg = self.config
+        for rms, moments in ((self.model.obs_rms, batch.obs_moments),
+                             (self.model.ret_rms, batch.ret_moments)):
+            if moments is not None:
+                rms.merge(moments.count, moments.mean, moments.m2)
+        if cfg.anneal_lr:
+            progress = min(1.0, self.global_step / cfg.total_timesteps)
+            self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
+        fragments = [message_to_fragment(m) for m in batch.fragments]
+        started = time.perf_counter()
+        result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
+                                   batch.step_index)
+        self.update_s += time.perf_counter() - started
+        if len(result.priority_keys):
+            self.priorities_publisher.put(encode(PriorityUpdate(
+                keys=np.asarray(result.priority_keys, np.int64),
+                priorities=np.asarray(result.priorities, np.float64))))
+        if self.learner.updates % cfg.params_publish_interval == 0:
+            self.publish_params()
+        for key, value in result.metrics.items():
+            self.sums[key] = self.sums.get(key, 0.0) + value
+        self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
+            + float(np.mean([self.learner.updates - 1 - f.policy_version for f in fragments]))
+        self.count += 1
+
+    def drain_stats(self) -> None:
+        while True:
+            try:
+                sample = self.stats_inbox.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                stats = decode(sample.payload.to_bytes(), Stats)
+            except DecodeError as exc:
+                self.log_bad(exc.kind, f"dropped bad stats from {sample.key_expr} ({exc})")
+                continue
+            if stats.role == "replay":
+                self.replay_stats = stats.values
+            elif stats.role == "actor":
+                self.actor_versions[stats.ident] = int(stats.values.get("param_version", 0))
+                for ret, length in zip(stats.episode_returns.tolist(),
+                                       stats.episode_lengths.tolist(), strict=True):
+                    self.recent_returns.append(ret)
+                    self.metrics.log(self.global_step, {"charts/episodic_return": ret,
+                                                        "charts/episodic_length": length})
+
+    def mean_return(self) -> float:
+        return float(np.mean(self.recent_returns)) if self.recent_returns else float("nan")
+
+    def param_version_lag(self) -> float:
+        if not self.actor_versions:
+            return float("nan")
+        return float(np.mean([self.learner.updates - v for v in self.actor_versions.values()]))
+
+    def publish_stats(self, sps: float) -> None:
+        """What the cluster's display shows (only finite numbers travel)."""
+        values = {"global_step": self.global_step, "total_timesteps":
+                  self.config.total_timesteps, "sps": sps, "mean_return": self.mean_return(),
+                  "updates": self.learner.updates, "param_version_lag":
+                  self.param_version_lag(), "actors": len(self.actor_versions)}
+        self.stats_publisher.put(encode(Stats(
+            role="learner", ident="0", values=finite_values(values),
+            episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
+
+    def log_progress(self, sps: float) -> None:
+        values = {"charts/SPS": sps,
+                  "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
+                  "perf/updates": self.learner.updates, "perf/param_version": self.learner.updates}
+        if self.count:
+            values.update({k: v / self.count for k, v in self.sums.items()})
+            values["perf/update_ms"] = 1e3 * self.update_s / self.count
+        busy = self.update_s + self.wait_s
+        if busy > 0:
+            values["perf/batch_wait_fraction"] = self.wait_s / busy
+        values["actor/param_version_lag"] = self.param_version_lag()
+        values.update({f"replay/{k}": v for k, v in self.replay_stats.items()
+                       if isinstance(v, (int, float)) and "/" not in k})
+        self.metrics.log(self.global_step, values)
+        self.metrics.flush()
+        self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0
+        say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
+                  f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
+                  f"actors {len(self.actor_versions)}")
+
+    def finish(self, finished: bool) -> None:
+        path = save_training(self.run_dir, self.learner, self.config, self.global_step, "final")
+        if finished:
+            self.control_publisher.put(encode(Control(command="stop", reason="total_timesteps")))
+        self.stop.set("finished")
+        for fetcher in self.fetchers:
+            fetcher.join(timeout=self.config.request_timeout_s)
+        self.metrics.close()
+        self.token.undeclare()
+        say(PROG, f"{'done' if finished else 'stopped'} at {self.global_step:,} steps, "
+                  f"{self.learner.updates:,} updates; checkpoint {path}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    try:
+        config = resolve(LearnerServiceConfig, argv, PROG,
+                         "TPDEB learner: trains from the replay server, publishes parameters.")
+        session = open_for(config)
+    except ConfigError as exc:
+        return fail(PROG, exc)
+    stop = StopSignal().install()
+    try:
+        keys = Keys(config.run_id)
+        spec = fetch_spec(session, keys, config.connect_timeout_s, stop)
+        if spec.env_id != config.env_id:
+            raise ConfigError(f"the replay server trains {spec.env_id!r}, this learner was "
+                              f"started with --env-id {config.env_id!r}")
+        service = LearnerService(config, spec, session, stop)
+    except ConfigError as exc:
+        session.close()
+        return fail(PROG, exc)
+    finished = False
+    try:
+        finished = service.run()
+    finally:
+        service.finish(finished)
+        session.close()
+    return 0 if finished or stop.reason in ("SIGINT", "SIGTERM") else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from services.checkpoint import save_atomic
+from services.checkpoint import save_training
 from services.config import ConfigError, resolve, to_toml
 from services.envs import make_vector_env, space_dims
 from services.metrics import MetricsWriter
@@ -175,10 +175,7 @@ class SerialRunner:
                 "updates": self.learner.updates}
 
     def save_checkpoint(self) -> Path:
-        state = {**self.learner.state_dict(), "config": dataclasses.asdict(self.config),
-                 "global_step": self.global_step, "version": self.learner.updates}
-        name = f"final_{self.learner.updates}_{self.global_step}.pt"
-        return save_atomic(state, self.run_dir / "checkpoints" / name)
+        return save_training(self.run_dir, self.learner, self.config, self.global_step, "final")
 
 
 def main(argv: list[str] | None = None) -> int:

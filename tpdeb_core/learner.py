@@ -179,7 +179,7 @@ class Learner:
             for b in np.flatnonzero(from_prioritized):
                 mask[:, b] = 0.0
                 mask[int(step_index[b]), b] = 1.0
-        w = torch.as_tensor(np.asarray(weights, np.float32)) * mask
+        w = torch.tensor(np.asarray(weights, np.float32)) * mask  # a copy: inputs may be read-only
         norm = mask.sum()
 
         surrogate, log_ratio = impact_surrogate(

@@ -54,6 +54,19 @@ def batch_moments(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
     return float(x.shape[0]), mean, m2
 
 
+def merge_moments(a: tuple, b: tuple) -> tuple[float, np.ndarray, np.ndarray]:
+    """Chan et al.'s parallel combination of two (count, mean, M2) triples."""
+    n_a, mean_a, m2_a = a
+    n_b, mean_b, m2_b = b
+    if n_b <= 0:
+        return float(n_a), np.asarray(mean_a, np.float64), np.asarray(m2_a, np.float64)
+    n = n_a + n_b
+    delta = np.asarray(mean_b, np.float64) - mean_a
+    mean = mean_a + delta * (n_b / n)
+    m2 = m2_a + np.asarray(m2_b, np.float64) + delta**2 * (n_a * n_b / n)
+    return float(n), mean, m2
+
+
 class RunningMeanStd(nn.Module):
     """Running mean/variance, merged with Chan et al.'s parallel update.
 
@@ -78,16 +91,12 @@ class RunningMeanStd(nn.Module):
     @torch.no_grad()
     def merge(self, count: float, mean, m2) -> None:
         """Fold in the moments (count, mean, M2) of another sample set."""
-        if count <= 0:
-            return
-        mean_b = torch.as_tensor(np.asarray(mean), dtype=torch.float64).reshape(self.mean.shape)
-        m2_b = torch.as_tensor(np.asarray(m2), dtype=torch.float64).reshape(self.m2.shape)
-        n_a = self.count.clone()
-        n = n_a + count
-        delta = mean_b - self.mean
-        self.mean += delta * (count / n)
-        self.m2 += m2_b + delta.pow(2) * (n_a * count / n)
-        self.count.copy_(n)
+        n, mean_ab, m2_ab = merge_moments(
+            self.moments(), (count, np.asarray(mean).reshape(self.mean.shape),
+                             np.asarray(m2).reshape(self.m2.shape)))
+        self.count.fill_(n)
+        self.mean.copy_(torch.as_tensor(mean_ab))
+        self.m2.copy_(torch.as_tensor(m2_ab))
 
     def update(self, x: np.ndarray) -> None:
         self.merge(*batch_moments(x))

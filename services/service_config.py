@@ -1,0 +1,89 @@
+"""One config dataclass per service. Each extends the training configuration, so a single TOML
+file (the cluster's `[train]` section, written to the run dir) configures every process alike,
+the way one config runs either in one process (`tpdeb-train`) or distributed."""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from services.config import ConfigError
+from services.train_config import TrainConfig
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+_RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
+
+
+@dataclass
+class ServiceConfig(TrainConfig):
+    run_id: str = "default"
+    """run identifier: every key expression lives under tpdeb/{run_id}/, so runs sharing a
+    router never exchange data"""
+    listen: tuple[str, ...] = ()
+    """Zenoh endpoints this process listens on, e.g. tcp/127.0.0.1:7447"""
+    connect: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    """Zenoh endpoints (the replay server's router) this process connects to"""
+    connect_timeout_s: float = 60.0
+    """how long to wait for the router (and for the run spec) before giving up"""
+    stats_interval_s: float = 1.0
+    """seconds between stats publications"""
+    max_message_bytes: int = 16 * 2**20
+    """incoming messages larger than this are dropped unread (and counted)"""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not _RUN_ID.fullmatch(self.run_id):
+            raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
+        if self.connect_timeout_s <= 0:
+            raise ConfigError(f"connect_timeout_s={self.connect_timeout_s}: must be > 0")
+
+
+@dataclass
+class ReplayServiceConfig(ServiceConfig):
+    listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    """Zenoh endpoints the replay server's router listens on (the others connect here)"""
+    connect: tuple[str, ...] = ()
+    """other routers to connect to (multi-host setups with a separate zenohd)"""
+    max_pending_fragments: int = 1024
+    """fragments received but held back by the rate limiter; beyond this, new ones are dropped
+    unacknowledged (their actors resend them)"""
+    sample_wait_s: float = 1.0
+    """how long a sample request may wait for the rate limiter before a 'not ready' reply"""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.listen and not self.connect:
+            raise ConfigError("the replay server needs --listen (or --connect to a router)")
+
+
+@dataclass
+class LearnerServiceConfig(ServiceConfig):
+    requests_in_flight: int = 3
+    """sample requests kept outstanding at the replay server so the learner never waits"""
+    request_timeout_s: float = 30.0
+    """a sample request unanswered this long is abandoned and asked again"""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if self.requests_in_flight < 1:
+            raise ConfigError(f"requests_in_flight={self.requests_in_flight}: must be ≥ 1")
+
+
+@dataclass
+class ActorServiceConfig(ServiceConfig):
+    actor_id: int = 0
+    """this actor's id (unique in the run): its key is traj/{actor_id}, its envs' seeds
+    seed + 1000·actor_id + i"""
+    outbox_fragments: int = 8
+    """fragments sent but not yet acknowledged; at this bound the actor waits (back-pressure)"""
+    resend_after_s: float = 10.0
+    """resend a fragment not acknowledged within this time"""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not 0 <= self.actor_id < 2**31:
+            raise ConfigError(f"actor_id={self.actor_id}: must be in [0, 2^31)")
+        if self.outbox_fragments < 1:
+            raise ConfigError(f"outbox_fragments={self.outbox_fragments}: must be ≥ 1")
+        if self.resend_after_s <= 0:
+            raise ConfigError(f"resend_after_s={self.resend_after_s}: must be > 0")

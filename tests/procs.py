@@ -1,0 +1,100 @@
+"""Real service processes for integration tests: free ports, spawning by pid, guaranteed stop,
+and a Zenoh client session to watch a run from outside."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MODULES = {"replay": "services.replay", "learner": "services.learner",
+           "actor": "services.actor", "cluster": "services.cluster"}
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class Procs:
+    """Starts service CLIs as subprocesses (own process group each) and stops every one of them,
+    with their children, when the test ends — also when it fails."""
+
+    def __init__(self, log_dir: Path):
+        self.log_dir = log_dir
+        self.started: list[subprocess.Popen] = []
+        self.logs: dict[int, Path] = {}
+
+    def spawn(self, role: str, *args: str, name: str | None = None) -> subprocess.Popen:
+        name = name or role
+        log = self.log_dir / f"{name}.log"
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        with log.open("w") as out:
+            proc = subprocess.Popen(
+                [sys.executable, "-m", MODULES[role], *args], cwd=ROOT, stdout=out,
+                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                start_new_session=True)
+        self.started.append(proc)
+        self.logs[proc.pid] = log
+        return proc
+
+    def output(self, proc: subprocess.Popen) -> str:
+        return self.logs[proc.pid].read_text()
+
+    def wait_for_line(self, proc: subprocess.Popen, text: str, timeout_s: float = 60) -> None:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if text in self.output(proc):
+                return
+            if proc.poll() is not None:
+                raise AssertionError(f"exited with {proc.returncode} before {text!r}:\n"
+                                     f"{self.output(proc)}")
+            time.sleep(0.1)
+        raise AssertionError(f"no {text!r} within {timeout_s} s:\n{self.output(proc)}")
+
+    def stop_all(self, timeout_s: float = 15) -> None:
+        for proc in self.started:
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.killpg(proc.pid, signal.SIGTERM)
+        deadline = time.monotonic() + timeout_s
+        for proc in self.started:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(max(0.1, deadline - time.monotonic()))
+        for proc in self.started:  # whatever is left, and any grandchildren, by group
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(5)
+
+    def leftovers(self) -> list[int]:
+        """Pids of started processes or members of their groups still alive."""
+        alive = []
+        for proc in self.started:
+            with contextlib.suppress(ProcessLookupError, PermissionError):
+                os.killpg(proc.pid, 0)
+                alive.append(proc.pid)
+        return alive
+
+
+def pids_with(text: str) -> list[int]:
+    """Live processes whose command line mentions `text` (e.g. a test's unique run dir)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            cmdline = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode()
+            state = (entry / "stat").read_text().split(") ")[-1][:1]
+        except OSError:
+            continue
+        if text in cmdline and state != "Z":
+            found.append(int(entry.name))
+    return found

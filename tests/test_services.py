@@ -1,0 +1,182 @@
+"""The distributed services as real processes on loopback Zenoh: the replay server alone and
+under a flood of bad messages, clear refusals, a killed actor, and the cluster learning."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+import statistics
+import time
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import Keys, SampleReply, SampleRequest, Stats, decode, encode
+from services.metrics import read_metrics
+from services.zsession import fetch_spec, open_session
+from tests.procs import Procs, free_port, pids_with
+
+ENV = "InvertedPendulum-v5"
+
+
+@pytest.fixture
+def procs(tmp_path):
+    p = Procs(tmp_path)
+    yield p
+    p.stop_all()
+    assert not p.leftovers(), "a service outlived its test"
+    assert not pids_with(str(tmp_path)), "a service process outlived its test"
+
+
+@pytest.fixture
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture
+def client(endpoint):
+    sessions = []
+
+    def connect():
+        session = open_session("client", [], [endpoint], connect_timeout_s=30)
+        sessions.append(session)
+        return session
+
+    yield connect
+    for session in sessions:
+        session.close()
+
+
+def start_replay(procs, endpoint, tmp_path, *extra, run_id="t"):
+    proc = procs.spawn("replay", "--run-id", run_id, "--listen", endpoint, "--env-id", ENV,
+                       "--run-dir", str(tmp_path / "run"), *extra)
+    procs.wait_for_line(proc, "serving")
+    return proc
+
+
+def watch_stats(session, keys: Keys) -> queue.Queue:
+    inbox: queue.Queue = queue.Queue()
+    session.declare_subscriber(keys.stats_all, lambda s: inbox.put(
+        decode(s.payload.to_bytes(), Stats)))
+    return inbox
+
+
+def next_stats(inbox: queue.Queue, role: str, until, timeout_s: float = 60) -> dict:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            stats = inbox.get(timeout=1)
+        except queue.Empty:
+            continue
+        if stats.role == role and until(stats.values):
+            return stats.values
+    raise AssertionError(f"no {role} stats satisfying the condition within {timeout_s} s")
+
+
+def test_replay_alone_serves_spec_and_survives_a_flood_of_bad_messages(
+        procs, endpoint, client, tmp_path):
+    replay = start_replay(procs, endpoint, tmp_path, "--max-message-bytes", "1000000")
+    session = client()
+    keys = Keys("t")
+    spec = fetch_spec(session, keys, 30)
+    assert (spec.env_id, spec.obs_dim, spec.act_dim) == (ENV, 4, 1)
+    inbox = watch_stats(session, keys)
+
+    rng = np.random.default_rng(0)
+    good = {"v": 1, "type": "Trajectory", "body": {"actor_id": 3}}
+    garbage = [rng.bytes(int(n)) for n in rng.integers(1, 2000, 100)]
+    garbage += [msgpack.packb({**good, "v": 99}), msgpack.packb(good), msgpack.packb([1, 2]),
+                b"\x00" * (2 * 2**20)]  # wrong version, missing fields, not a map, oversize
+    publisher = session.declare_publisher(keys.traj(3))
+    for payload in garbage:
+        publisher.put(payload)
+    stats = next_stats(inbox, "replay", lambda v: v.get("bad_messages", 0) >= len(garbage))
+    assert stats["bad_messages"] == len(garbage)
+    assert stats.get("bad/msgpack", 0) > 0 and stats.get("bad/version") == 1
+    assert stats.get("bad/size") == 1 and stats.get("bad/field", 0) >= 1
+    assert stats["inserted_steps"] == 0  # nothing half-inserted
+
+    # still serving: the spec again, and an honest "not ready" to a sample request
+    assert fetch_spec(session, keys, 10).env_id == ENV
+    replies = list(session.get(keys.sample, payload=encode(SampleRequest(
+        request_id=1, batch_size=8, beta=0.4)), timeout=10))
+    reply = decode(replies[0].ok.payload.to_bytes(), SampleReply)
+    assert not reply.ready and reply.reason
+    assert replay.poll() is None
+    assert "dropped a bad message" in procs.output(replay)
+
+
+def test_unknown_env_id_is_refused_with_one_line(procs, endpoint, tmp_path):
+    actor = procs.spawn("actor", "--env-id", "InvertedPendulum-v9", "--connect", endpoint)
+    assert actor.wait(60) == 2
+    lines = procs.output(actor).strip().splitlines()
+    assert len(lines) == 1 and "InvertedPendulum-v9" in lines[0], lines
+    cluster = procs.spawn("cluster", "--env-id", "HalfCheeta-v5", "--run-dir",
+                          str(tmp_path / "c"))
+    assert cluster.wait(60) == 2
+    out = procs.output(cluster)
+    assert "HalfCheeta-v5" in out and "HalfCheetah-v5" in out  # names the likely fix
+
+
+def test_actor_refuses_a_run_spec_mismatch(procs, endpoint, tmp_path):
+    start_replay(procs, endpoint, tmp_path)
+    actor = procs.spawn("actor", "--run-id", "t", "--env-id", "Hopper-v5", "--connect", endpoint)
+    assert actor.wait(60) == 2
+    lines = procs.output(actor).strip().splitlines()
+    assert len(lines) == 1 and "run spec mismatch" in lines[0] and ENV in lines[0], lines
+
+
+def test_actor_refuses_another_schema_version(procs, endpoint):
+    # A replay server from another release: its run spec carries schema version 99.
+    router = open_session("router", [endpoint], [])
+    try:
+        keys = Keys("t")
+        old = msgpack.packb({"v": 99, "type": "RunSpec", "body": {}})
+        queryable = router.declare_queryable(keys.spec, lambda q: q.reply(keys.spec, old))
+        actor = procs.spawn("actor", "--run-id", "t", "--env-id", ENV, "--connect", endpoint)
+        assert actor.wait(60) == 2
+        out = procs.output(actor)
+        assert "schema" in out and "99" in out, out
+        queryable.undeclare()
+    finally:
+        router.close()
+
+
+def test_killed_actor_does_not_stop_the_run(procs, endpoint, client, tmp_path):
+    common = ["--run-id", "t", "--env-id", ENV, "--num-envs", "2", "--total-timesteps", "20000",
+              "--run-dir", str(tmp_path / "run")]
+    start_replay(procs, endpoint, tmp_path, *common[4:])
+    learner = procs.spawn("learner", *common, "--connect", endpoint)
+    actors = [procs.spawn("actor", *common, "--connect", endpoint, "--actor-id", str(i),
+                          name=f"actor-{i}") for i in range(2)]
+    inbox = watch_stats(client(), Keys("t"))
+    next_stats(inbox, "learner", lambda v: v.get("global_step", 0) >= 4000, timeout_s=120)
+    os.kill(actors[0].pid, signal.SIGKILL)
+    assert learner.wait(240) == 0, procs.output(learner)
+    assert actors[1].wait(30) == 0, procs.output(actors[1])
+    assert actors[0].wait(5) == -signal.SIGKILL
+    steps = [r["global_step"] for r in read_metrics(tmp_path / "run" / "metrics.jsonl")]
+    assert max(steps) >= 20000
+
+
+@pytest.mark.slow
+def test_cluster_learns_inverted_pendulum(procs, tmp_path):
+    run_dir = tmp_path / "run"
+    cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "100000",
+                          "--seed", "1", "--run-dir", str(run_dir))
+    assert cluster.wait(540) == 0, procs.output(cluster)[-3000:]
+    rows = read_metrics(run_dir / "metrics.jsonl")
+    returns = [r["charts/episodic_return"] for r in rows if "charts/episodic_return" in r]
+    assert statistics.mean(returns[-20:]) >= 800, returns[-20:]
+    keys = set().union(*rows)
+    for key in ("charts/SPS", "losses/policy_loss", "replay/prioritized_items",
+                "actor/param_version_lag", "perf/update_ms"):
+        assert key in keys, key
+    assert max(r["global_step"] for r in rows) >= 100000
+    assert list(run_dir.glob("events.out.tfevents.*"))
+    assert 'env_id = "InvertedPendulum-v5"' in (run_dir / "config.toml").read_text()
+    assert list((run_dir / "checkpoints").glob("final_*.pt"))
+    assert {"replay.log", "learner.log", "actor-0.log", "actor-1.log"} <= {
+        p.name for p in (run_dir / "logs").iterdir()}
