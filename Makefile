@@ -1,4 +1,5 @@
-# Quick start: `make run` trains, `make test` runs the test suite. Both build .venv first.
+# Quick start: `make run` trains with the local cluster, `make test` runs the test suite.
+# Both build .venv first.
 # Override the torch build with e.g. `make test TORCH_SPEC='torch==2.5.1'`.
 PYTHON ?= python3
 VENV ?= .venv
@@ -6,7 +7,7 @@ TORCH_SPEC ?= torch==2.13.0
 BIN := $(VENV)/bin
 ARGS ?=
 
-.PHONY: install run test lint bench-replay bench-learn clean
+.PHONY: install run serial test lint bench-replay bench-learn bench-throughput clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -20,6 +21,9 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 install: $(VENV)/.installed
 
 run: install
+	$(BIN)/tpdeb-cluster --config deploy/local.toml $(ARGS)
+
+serial: install
 	$(BIN)/tpdeb-train --env-id HalfCheetah-v5 $(ARGS)
 
 test: install
@@ -34,6 +38,9 @@ bench-replay: install
 
 bench-learn: install
 	$(BIN)/python bench/learn.py
+
+bench-throughput: install
+	$(BIN)/python bench/throughput.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

@@ -180,8 +180,10 @@ class ActorService:
                 last_stats, last_steps = now, steps
 
     def send(self, fragment) -> None:
-        while not self.stop and not self.outbox.wait_for_room(0.5):
-            self.resend_due(time.monotonic())  # back-pressure: wait for acks, resend the lost
+        while not self.stop and not self.outbox.wait_for_room(0.05):
+            # back-pressure: wait for acks, resend the lost, keep the parameters fresh
+            self.resend_due(time.monotonic())
+            self.refresh_params()
         payload = encode(fragment_to_message(fragment, self.model.reward_scale()))
         self.outbox.add(fragment.seq, payload, time.monotonic())
         self.traj_publisher.put(payload)
