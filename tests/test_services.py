@@ -106,6 +106,9 @@ def test_replay_alone_serves_spec_and_survives_a_flood_of_bad_messages(
     assert not reply.ready and reply.reason
     assert replay.poll() is None
     assert "dropped a bad message" in procs.output(replay)
+    started = time.monotonic()
+    replay.send_signal(signal.SIGTERM)  # closes its session and exits promptly
+    assert replay.wait(10) == 0 and time.monotonic() - started < 5
 
 
 def test_unknown_env_id_is_refused_with_one_line(procs, endpoint, tmp_path):
