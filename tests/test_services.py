@@ -183,3 +183,16 @@ def test_cluster_learns_inverted_pendulum(procs, tmp_path):
     assert list((run_dir / "checkpoints").glob("final_*.pt"))
     assert {"replay.log", "learner.log", "actor-0.log", "actor-1.log"} <= {
         p.name for p in (run_dir / "logs").iterdir()}
+
+
+def test_ctrl_c_stops_the_cluster_in_order_with_a_checkpoint(procs, tmp_path):
+    run_dir = tmp_path / "run"
+    cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "1000000",
+                          "--num-envs", "2", "--run-dir", str(run_dir))
+    procs.wait_for_line(cluster, "[learner] tpdeb-learner: [", timeout_s=120)  # training
+    cluster.send_signal(signal.SIGINT)
+    assert cluster.wait(60) == 130, procs.output(cluster)[-3000:]
+    out = procs.output(cluster)
+    assert "SIGINT: stopping the services" in out
+    assert list((run_dir / "checkpoints").glob("final_*.pt")), out[-3000:]
+    assert not pids_with(str(run_dir))  # every service is gone
