@@ -62,6 +62,9 @@ ACTOR_END = re.compile(r"actor (\d+) stopped \(([^)]*)\): ([\d,]+) steps, (\d+) 
 REPLAY_END = re.compile(r"tpdeb-replay: stopped \(([^)]*)\); ([\d,]+) steps ingested, (\d+) bad")
 PROBLEM = re.compile(r"traceback|error|exception|exited with code|ended with code|dropped|"
                      r"warning|no actor|did not come up", re.IGNORECASE)
+# Not problems: MuJoCo's deprecation notice on loading HalfCheetah's XML (every env prints it),
+# a clean replay stop, the learner's normal exit.
+BENIGN = re.compile(r"settotalmass|, 0 bad messages dropped|learner exited with code 0$")
 
 
 def say(text: str) -> None:
@@ -426,7 +429,7 @@ def run_cluster(args, actors: int, out_dir: Path) -> dict:
             if (m := REPLAY_END.search(line)) is not None:
                 replay_end = {"reason": m.group(1), "ingested": num(m.group(2)),
                               "bad_messages": int(m.group(3))}
-            if PROBLEM.search(line) and not PROGRESS.search(line):
+            if PROBLEM.search(line) and not PROGRESS.search(line) and not BENIGN.search(line):
                 problems.append(f"{t:.1f}s {line}")
                 print(f"    ! {line}", flush=True)
 
@@ -524,6 +527,19 @@ def ratio_text(value, goal: float | None = None) -> str:
     return f"{value:.2f}{mark}"
 
 
+def per_update(c: dict) -> str:
+    """A cluster update's wall time split into Learner.step, waiting for a batch, and the rest
+    (decoding the batch, publishing priorities and parameters, stats)."""
+    ups, step_ms = c.get("steady_updates_per_s"), c.get("learner_update_ms")
+    wait = c.get("learner_batch_wait_fraction")
+    if not ups or step_ms is None or wait is None or wait >= 1:
+        return "n/a"
+    wall_ms = 1e3 / ups
+    wait_ms = step_ms * wait / (1 - wait)
+    return (f"{wall_ms:.1f}: {step_ms:.1f} / {wait_ms:.1f} / "
+            f"{wall_ms - step_ms - wait_ms:.1f}")
+
+
 def render(results: dict) -> str:
     env, actor = results["env_limit"], results["actor"]
     mem = results["learner_in_memory"]
@@ -581,6 +597,7 @@ def render(results: dict) -> str:
            lambda c: f"{fmt(c.get('steady_s'), 1)}, {c.get('steady_rows', 0)}")
     detail("learner ms/update (in cluster)", lambda c: fmt(c.get("learner_update_ms"), 1))
     detail("learner batch-wait fraction", lambda c: fmt(c.get("learner_batch_wait_fraction"), 2))
+    detail("wall ms per update: Learner.step / waiting / rest", per_update)
     detail("rate-limiter ceiling, updates/s", lambda c: fmt(c.get("rate_limit_updates_per_s"), 1))
     detail("param version lag (updates)", lambda c: fmt(c.get("param_version_lag"), 1))
     detail("fragments resent / bad messages",

@@ -155,7 +155,7 @@ class ActorService:
         except DecodeError as exc:
             self.log_bad(exc.kind, f"dropped bad parameters ({exc})")
             return False
-        self.collector.policy_version = message.version
+        self.collector.sync_model(message.version)
         return True
 
     # -- the loop

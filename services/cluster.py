@@ -360,9 +360,14 @@ class Cluster:
             for actor in actors:
                 if actor.proc.poll() is not None and actor.name not in reported:
                     reported.add(actor.name)
+                    if actor.proc.returncode == 0:
+                        continue  # left on the learner's stop message
                     self.display.echo(f"[{PROG}] {actor.name} exited with code "
                                       f"{actor.proc.returncode}; the other actors go on")
             alive = sum(a.proc.poll() is None for a in actors)
+            if not alive and all(a.proc.returncode == 0 for a in actors) and \
+                    self.learner_finishing(learner):
+                continue  # the actors left on the learner's stop message; it exits next
             if not alive:
                 self.display.echo(f"[{PROG}] no actor is left: stopping the run")
                 return 1

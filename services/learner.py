@@ -16,6 +16,7 @@ import time
 from collections import deque
 
 import numpy as np
+import torch
 
 from protocol import (
     Control,
@@ -63,6 +64,10 @@ class LearnerService:
         self.global_step = 0
         self.replay_stats: dict = {}
         self.actor_versions: dict[str, int] = {}
+        self.trained_keys: set[int] = set()
+        self.replay_items = config.prioritized_capacity + (
+            config.uniform_capacity_steps // config.fragment_len)
+        self.lag_sum, self.lag_count = 0.0, 0
         self.recent_returns: deque[float] = deque(maxlen=20)
         self.sums: dict[str, float] = {}
         self.count = 0
@@ -184,8 +189,20 @@ class LearnerService:
             self.publish_params()
         for key, value in result.metrics.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
+        ages = [self.learner.updates - 1 - f.policy_version for f in fragments]
         self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
-            + float(np.mean([self.learner.updates - 1 - f.policy_version for f in fragments]))
+            + float(np.mean(ages))
+        # Policy lag: how many versions behind the learner a fragment's behaviour policy was
+        # when the learner first trained on it (replay keys grow with insertion order).
+        fresh = [(key, age) for key, age in zip(batch.keys.tolist(), ages, strict=True)
+                 if key not in self.trained_keys]
+        for key, age in fresh:
+            self.trained_keys.add(key)
+            self.lag_sum += age
+            self.lag_count += 1
+        if len(self.trained_keys) > 4 * self.replay_items:  # forget keys long evicted
+            newest = max(self.trained_keys)
+            self.trained_keys = {k for k in self.trained_keys if k > newest - 2 * self.replay_items}
         self.count += 1
 
     def drain_stats(self) -> None:
@@ -213,9 +230,7 @@ class LearnerService:
         return float(np.mean(self.recent_returns)) if self.recent_returns else float("nan")
 
     def param_version_lag(self) -> float:
-        if not self.actor_versions:
-            return float("nan")
-        return float(np.mean([self.learner.updates - v for v in self.actor_versions.values()]))
+        return self.lag_sum / self.lag_count if self.lag_count else float("nan")
 
     def publish_stats(self, sps: float) -> None:
         """What the cluster's display shows (only finite numbers travel)."""
@@ -243,6 +258,7 @@ class LearnerService:
         self.metrics.log(self.global_step, values)
         self.metrics.flush()
         self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0
+        self.lag_sum, self.lag_count = 0.0, 0
         say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
                   f"actors {len(self.actor_versions)}")
@@ -264,6 +280,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = resolve(LearnerServiceConfig, argv, PROG,
                          "TPDEB learner: trains from the replay server, publishes parameters.")
+        # The learner shares the machine with actors and the replay server: more intra-op
+        # threads than it is given cores makes every update slower, not faster.
+        torch.set_num_threads(config.torch_threads)
         session = open_for(config)
     except ConfigError as exc:
         return fail(PROG, exc)

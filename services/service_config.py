@@ -74,8 +74,9 @@ class ActorServiceConfig(ServiceConfig):
     actor_id: int = 0
     """this actor's id (unique in the run): its key is traj/{actor_id}, its envs' seeds
     seed + 1000·actor_id + i"""
-    outbox_fragments: int = 8
-    """fragments sent but not yet acknowledged; at this bound the actor waits (back-pressure)"""
+    outbox_fragments: int = 0
+    """fragments sent but not yet acknowledged; at this bound the actor waits (back-pressure).
+    0 means 2 × num_envs: one round of fragments in flight while the next is collected"""
     resend_after_s: float = 10.0
     """resend a fragment not acknowledged within this time"""
 
@@ -83,7 +84,8 @@ class ActorServiceConfig(ServiceConfig):
         super().__post_init__()
         if not 0 <= self.actor_id < 2**31:
             raise ConfigError(f"actor_id={self.actor_id}: must be in [0, 2^31)")
-        if self.outbox_fragments < 1:
-            raise ConfigError(f"outbox_fragments={self.outbox_fragments}: must be ≥ 1")
+        if self.outbox_fragments < 0:
+            raise ConfigError(f"outbox_fragments={self.outbox_fragments}: must be ≥ 0")
+        self.outbox_fragments = self.outbox_fragments or 2 * self.num_envs
         if self.resend_after_s <= 0:
             raise ConfigError(f"resend_after_s={self.resend_after_s}: must be > 0")

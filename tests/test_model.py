@@ -4,6 +4,7 @@ from torch.distributions import Independent, Normal, kl_divergence
 
 from tpdeb_core.model import (
     ActorCritic,
+    NumpyActor,
     RunningMeanStd,
     batch_moments,
     gaussian_entropy,
@@ -65,3 +66,27 @@ def test_act_logp_is_of_the_raw_sample():
     expected = normal(torch.as_tensor(out["mean"]), torch.as_tensor(out["log_std"])).log_prob(
         torch.as_tensor(out["action"]))
     np.testing.assert_allclose(out["logp"], expected.numpy(), rtol=1e-5)
+
+
+def test_numpy_actor_matches_the_torch_model():
+    torch.manual_seed(0)
+    model = ActorCritic(5, 3, (16, 16), init_log_std=-0.3)
+    model.obs_rms.update(np.random.default_rng(1).normal(2.0, 3.0, (100, 5)))
+    with torch.no_grad():
+        model.policy.log_std.add_(torch.tensor([0.1, -0.2, 0.3]))
+    fast = NumpyActor(model)
+    obs = np.random.default_rng(2).normal(2.0, 3.0, (7, 5)).astype(np.float32)
+    out = fast.act(obs, np.random.default_rng(3))
+    with torch.no_grad():
+        mean, log_std = model.policy(model.norm_obs(torch.as_tensor(obs)))
+        logp = gaussian_log_prob(mean, log_std, torch.as_tensor(out["action"]))
+    np.testing.assert_allclose(out["mean"], mean.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out["log_std"], log_std.detach().numpy(), rtol=1e-6)
+    np.testing.assert_allclose(out["logp"], logp.numpy(), rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(out["value"], model.values_of(obs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(fast.values_of(obs), model.values_of(obs), rtol=1e-5, atol=1e-6)
+    with torch.no_grad():  # after a parameter change the copy follows only on sync
+        model.value_net[0].bias.add_(1.0)
+    assert not np.allclose(fast.values_of(obs), model.values_of(obs))
+    fast.sync(model)
+    np.testing.assert_allclose(fast.values_of(obs), model.values_of(obs), rtol=1e-5, atol=1e-6)

@@ -15,9 +15,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
-from tpdeb_core.model import ActorCritic
+from tpdeb_core.model import ActorCritic, NumpyActor
 from tpdeb_core.replay import PRIORITY_MODES
 
 
@@ -91,30 +90,16 @@ def fragment_priority(
     return 1.0
 
 
-class _EnvStream:
-    """Accumulates one env's steps until a fragment of T steps is complete."""
-
-    def __init__(self, fragment_len: int):
-        self.fragment_len = fragment_len
-        self.reset()
-
-    def reset(self) -> None:
-        self.steps: dict[str, list] = {k: [] for k in (
-            "obs", "actions", "rewards", "terminated", "truncated", "mean", "log_std", "logp",
-            "values", "disc_returns")}
-        self.trunc: list[tuple[int, np.ndarray]] = []
-        self.policy_version: int | None = None
-
-    def __len__(self) -> int:
-        return len(self.steps["rewards"])
-
-
 @dataclass
 class Collector:
     """Steps a vector env with an ActorCritic and emits fragments with initial priorities.
 
     `step()` advances every env once and returns the fragments completed by that step;
     finished episodes accumulate in `episodes` as (raw return, length) for the caller to drain.
+    Acting runs on a numpy copy of the model (`NumpyActor`): call `set_parameters` (or
+    `sync_model` after changing `model` yourself) so the copy follows the model.
+    All envs' steps are written into preallocated [num_envs, T] buffers with one numpy
+    operation per field, so the per-step cost barely grows with the number of envs.
     """
 
     envs: object
@@ -130,102 +115,108 @@ class Collector:
     episodes: list = field(default_factory=list)
 
     def __post_init__(self):
-        self.num_envs = int(self.envs.num_envs)
-        obs, _ = self.envs.reset(seed=[self.seed + i for i in range(self.num_envs)])
+        self.num_envs = n = int(self.envs.num_envs)
+        obs, _ = self.envs.reset(seed=[self.seed + i for i in range(n)])
         self.obs = np.asarray(obs, dtype=np.float32)
-        self.generator = torch.Generator().manual_seed(self.seed)
-        self.streams = [_EnvStream(self.fragment_len) for _ in range(self.num_envs)]
-        self.disc_return = np.zeros(self.num_envs, dtype=np.float64)
-        self.episode_return = np.zeros(self.num_envs, dtype=np.float64)
-        self.episode_length = np.zeros(self.num_envs, dtype=np.int64)
-        self.pending_reset = np.zeros(self.num_envs, dtype=bool)  # NEXT_STEP autoreset ahead
+        self.rng = np.random.default_rng(self.seed)
+        self.actor = NumpyActor(self.model)
+        T, obs_dim, act_dim = self.fragment_len, self.obs.shape[1], self.model.act_dim
+        self.buf = {
+            "obs": np.zeros((n, T, obs_dim), np.float32),
+            "actions": np.zeros((n, T, act_dim), np.float32),
+            "rewards": np.zeros((n, T), np.float32),
+            "terminated": np.zeros((n, T), bool),
+            "truncated": np.zeros((n, T), bool),
+            "behaviour_mean": np.zeros((n, T, act_dim), np.float32),
+            "behaviour_log_std": np.zeros((n, T, act_dim), np.float32),
+            "behaviour_logp": np.zeros((n, T), np.float32),
+            "values": np.zeros((n, T), np.float32),
+            "disc_returns": np.zeros((n, T), np.float32),
+        }
+        self.pos = np.zeros(n, np.int64)  # steps recorded in each env's current fragment
+        self.version = np.zeros(n, np.int64)  # policy version at each fragment's first step
+        self.trunc: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
+        self.disc_return = np.zeros(n, dtype=np.float64)
+        self.episode_return = np.zeros(n, dtype=np.float64)
+        self.episode_length = np.zeros(n, dtype=np.int64)
+        self.pending_reset = np.zeros(n, dtype=bool)  # NEXT_STEP autoreset ahead
         self.seq = 0
         self.env_steps = 0  # steps recorded into fragments (autoreset steps excluded)
 
     def set_parameters(self, state_dict: dict, version: int) -> None:
         self.model.load_state_dict(state_dict)
+        self.sync_model(version)
+
+    def sync_model(self, version: int) -> None:
+        self.actor.sync(self.model)
         self.policy_version = int(version)
 
     def step(self) -> list[Fragment]:
-        out = self.model.act(self.obs, self.generator)
+        out = self.actor.act(self.obs, self.rng)
         env_action = np.clip(out["action"], self.action_low, self.action_high)
         next_obs, rewards, terminated, truncated, info = self.envs.step(env_action)
         next_obs = np.asarray(next_obs, dtype=np.float32)
+        rewards = np.asarray(rewards, np.float64)
+        terminated, truncated = np.asarray(terminated, bool), np.asarray(truncated, bool)
+        # gymnasium NEXT_STEP mode: a step that only reset an env has nothing to learn from.
+        live = np.flatnonzero(~self.pending_reset)
+        self.pending_reset[:] = False
+        t = self.pos[live]
+        self.version[live[t == 0]] = self.policy_version
+        self.disc_return[live] = self.disc_return[live] * self.gamma + rewards[live]
+        row = {
+            "obs": self.obs, "actions": out["action"], "rewards": rewards,
+            "terminated": terminated, "truncated": truncated, "behaviour_mean": out["mean"],
+            "behaviour_log_std": out["log_std"], "behaviour_logp": out["logp"],
+            "values": out["value"], "disc_returns": self.disc_return,
+        }
+        if len(live) == self.num_envs and (t == t[0]).all():  # the usual case: plain slices
+            for key, values in row.items():
+                self.buf[key][:, t[0]] = values
+        else:
+            for key, values in row.items():
+                self.buf[key][live, t] = values[live]
+        self.pos[live] += 1
+        self.env_steps += len(live)
+        self.episode_return[live] += rewards[live]
+        self.episode_length[live] += 1
         final_obs = info.get("final_obs") if self.same_step_autoreset else None
-        done_streams = []
-        for i in range(self.num_envs):
-            if self.pending_reset[i]:
-                # gymnasium NEXT_STEP mode: this step only reset env i; nothing to learn from.
-                self.pending_reset[i] = False
-                continue
-            stream = self.streams[i]
-            if stream.policy_version is None:
-                stream.policy_version = self.policy_version
-            r = float(rewards[i])
-            self.disc_return[i] = self.disc_return[i] * self.gamma + r
-            row = {
-                "obs": self.obs[i], "actions": out["action"][i], "rewards": r,
-                "terminated": bool(terminated[i]), "truncated": bool(truncated[i]),
-                "mean": out["mean"][i], "log_std": out["log_std"][i], "logp": out["logp"][i],
-                "values": out["value"][i], "disc_returns": self.disc_return[i],
-            }
-            for key, value in row.items():
-                stream.steps[key].append(value)
-            self.env_steps += 1
-            self.episode_return[i] += r
-            self.episode_length[i] += 1
-            if terminated[i] or truncated[i]:
-                self.episodes.append((float(self.episode_return[i]), int(self.episode_length[i])))
-                self.episode_return[i] = 0.0
-                self.episode_length[i] = 0
-                self.disc_return[i] = 0.0
-                if truncated[i] and not terminated[i]:
-                    last = final_obs[i] if final_obs is not None else next_obs[i]
-                    stream.trunc.append((len(stream) - 1, np.asarray(last, dtype=np.float32)))
-                self.pending_reset[i] = not self.same_step_autoreset
-            if len(stream) == self.fragment_len:
-                done_streams.append(i)
-        fragments = self._emit(done_streams, next_obs) if done_streams else []
+        for i in live[(terminated | truncated)[live]]:
+            self.episodes.append((float(self.episode_return[i]), int(self.episode_length[i])))
+            self.episode_return[i] = self.disc_return[i] = 0.0
+            self.episode_length[i] = 0
+            if truncated[i] and not terminated[i]:
+                last = final_obs[i] if final_obs is not None else next_obs[i]
+                self.trunc[i].append((int(self.pos[i]) - 1, np.asarray(last, dtype=np.float32)))
+            self.pending_reset[i] = not self.same_step_autoreset
+        full = live[self.pos[live] == self.fragment_len]
+        fragments = self._emit(full, next_obs) if len(full) else []
         self.obs = next_obs
         return fragments
 
-    def _emit(self, env_indices: list[int], next_obs: np.ndarray) -> list[Fragment]:
-        boot_values = self.model.values_of(next_obs[env_indices])
+    def _emit(self, env_indices: np.ndarray, next_obs: np.ndarray) -> list[Fragment]:
+        boot_values = self.actor.values_of(next_obs[env_indices])
         scale = self.model.reward_scale()
+        obs_dim = self.obs.shape[1]
         fragments = []
-        for j, i in enumerate(env_indices):
-            s = self.streams[i].steps
-            trunc = self.streams[i].trunc
-            obs_dim = self.obs.shape[1]
+        for j, i in enumerate(env_indices.tolist()):
+            b = {key: buf[i].copy() for key, buf in self.buf.items()}
+            trunc = self.trunc[i]
             trunc_index = np.array([t for t, _ in trunc], dtype=np.int32)
             trunc_obs = (np.stack([o for _, o in trunc]).astype(np.float32) if trunc
                          else np.zeros((0, obs_dim), np.float32))
-            values = np.append(np.asarray(s["values"], np.float32), np.float32(boot_values[j]))
-            terminated = np.asarray(s["terminated"], bool)
-            rewards = np.asarray(s["rewards"], np.float32)
+            values = np.append(b.pop("values"), np.float32(boot_values[j]))
             next_values = values[1:].astype(np.float64)
-            if len(trunc):
-                next_values[trunc_index] = self.model.values_of(trunc_obs)
-            td = scale * rewards + self.gamma * (~terminated) * next_values - values[:-1]
+            if trunc:
+                next_values[trunc_index] = self.actor.values_of(trunc_obs)
+            td = scale * b["rewards"] + self.gamma * (~b["terminated"]) * next_values \
+                - values[:-1]
+            b["obs"] = np.concatenate([b["obs"], next_obs[i][None]])
             fragments.append(Fragment(
-                obs=np.concatenate([np.asarray(s["obs"], np.float32), next_obs[i][None]]),
-                actions=np.asarray(s["actions"], np.float32),
-                rewards=rewards,
-                terminated=terminated,
-                truncated=np.asarray(s["truncated"], bool),
-                behaviour_mean=np.asarray(s["mean"], np.float32),
-                behaviour_log_std=np.asarray(s["log_std"], np.float32),
-                behaviour_logp=np.asarray(s["logp"], np.float32),
-                values=values,
-                trunc_index=trunc_index,
-                trunc_obs=trunc_obs,
-                disc_returns=np.asarray(s["disc_returns"], np.float32),
-                td_abs=np.abs(td).astype(np.float32),
-                policy_version=int(self.streams[i].policy_version),
-                actor_id=self.actor_id,
-                env_index=i,
-                seq=self.seq,
-            ))
+                **b, values=values, trunc_index=trunc_index, trunc_obs=trunc_obs,
+                td_abs=np.abs(td).astype(np.float32), policy_version=int(self.version[i]),
+                actor_id=self.actor_id, env_index=i, seq=self.seq))
             self.seq += 1
-            self.streams[i].reset()
+            self.pos[i] = 0
+            self.trunc[i] = []
         return fragments

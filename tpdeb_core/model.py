@@ -195,3 +195,56 @@ class ActorCritic(nn.Module):
     @torch.no_grad()
     def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
         return self.value(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))).numpy()
+
+
+class NumpyActor:
+    """The acting path of an ActorCritic in numpy: the same outputs as `act`/`values_of`
+    without a torch call per env step (for small batches, torch's per-call overhead costs more
+    than the arithmetic). Call `sync(model)` after the model's parameters change."""
+
+    def __init__(self, model: ActorCritic):
+        self.sync(model)
+
+    @staticmethod
+    def _layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [(m.weight.detach().numpy().T.astype(np.float32).copy(),
+                 m.bias.detach().numpy().astype(np.float32).copy())
+                for m in net if isinstance(m, nn.Linear)]
+
+    def sync(self, model: ActorCritic) -> None:
+        self.mean_layers = self._layers(model.policy.mean)
+        self.value_layers = self._layers(model.value_net)
+        self.log_std = model.policy.log_std.detach().numpy().astype(np.float32).copy()
+        self.obs_mean = model.obs_rms.mean.numpy().astype(np.float32)
+        self.obs_inv_std = (1.0 / np.sqrt(model.obs_rms.var.numpy() + model.obs_rms.epsilon)
+                            ).astype(np.float32)
+        self.obs_clip = model.obs_clip
+        self.log_norm = float(-self.log_std.sum() - 0.5 * LOG_2PI * self.log_std.size)
+
+    @staticmethod
+    def _forward(layers, x: np.ndarray) -> np.ndarray:
+        for i, (weight, bias) in enumerate(layers):
+            x = x @ weight + bias
+            if i < len(layers) - 1:
+                np.tanh(x, out=x)
+        return x
+
+    def _norm(self, obs_raw: np.ndarray) -> np.ndarray:
+        x = (np.asarray(obs_raw, np.float32) - self.obs_mean) * self.obs_inv_std
+        return np.clip(x, -self.obs_clip, self.obs_clip) if self.obs_clip is not None else x
+
+    def act(self, obs_raw: np.ndarray, rng: np.random.Generator) -> dict:
+        obs = self._norm(obs_raw)
+        mean = self._forward(self.mean_layers, obs)
+        noise = rng.standard_normal(mean.shape, dtype=np.float32)
+        log_std = np.broadcast_to(self.log_std, mean.shape)
+        return {
+            "action": mean + noise * np.exp(log_std),
+            "mean": mean,
+            "log_std": log_std,
+            "logp": (-0.5 * np.square(noise).sum(-1) + self.log_norm).astype(np.float32),
+            "value": self._forward(self.value_layers, obs)[:, 0],
+        }
+
+    def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
+        return self._forward(self.value_layers, self._norm(obs_raw))[:, 0]
