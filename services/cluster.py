@@ -2,7 +2,7 @@
 
 Reads a cluster file (`deploy/local.toml`), writes the resolved training config into the run
 dir, starts replay → learner → actors as separate processes in dependency order (each waits
-for the one before it to answer), prefixes and saves their logs, shows a live progress line
+for what it depends on to answer), prefixes and saves their logs, shows a live progress line
 from the services' stats, and stops everything in reverse order at the end or on Ctrl-C.
 The learner ends the run: when it exits 0 the others stop on its stop message.
 """
@@ -293,19 +293,18 @@ class Cluster:
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
         keys = Keys(self.plan.run_id)
         try:
+            # Started in dependency order without waiting in between: each service waits for
+            # what it needs (the router, the run spec, the first parameters), so their slow
+            # imports overlap. The checks below then name the one that fails to come up.
             for spec in self.plan.services:
                 for i in range(spec.replicas):
                     name = spec.role if spec.replicas == 1 else f"{spec.role}-{i}"
                     env = {**os.environ, **{k: str(v) for k, v in spec.env.items()}}
                     self.children.append(Child(name, self.argv(spec, train_file, i), env,
                                                self.run_dir / "logs", say))
-                if spec.role == "replay":
-                    self.connect(keys)
-                    self.wait_until(lambda: fetch_spec(self.session, keys, 1.0) is not None,
-                                    "replay")
-                elif spec.role == "learner":
-                    self.wait_until(lambda: self._answers(self.session, keys.params_latest),
-                                    "learner")
+            self.connect(keys)
+            self.wait_until(lambda: fetch_spec(self.session, keys, 1.0) is not None, "replay")
+            self.wait_until(lambda: self._answers(self.session, keys.params_latest), "learner")
             return self.supervise()
         except ConfigError as exc:
             say(f"[{PROG}] error: {exc}")
