@@ -39,6 +39,7 @@ DEFAULT_FILE = ROOT / "deploy" / "local.toml"
 ROLES = ("replay", "learner", "actor")
 SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env"}
 CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s"}
+LINK_KEYS = ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms", "queue_ms")
 
 
 @dataclass
@@ -60,6 +61,8 @@ class Plan:
     train: TrainConfig
     services: list[ServiceSpec]  # in start order
     source: str
+    link: dict = field(default_factory=dict)  # [link] settings; empty: actors connect directly
+    link_endpoint: str = ""
 
 
 def free_port() -> int:
@@ -92,10 +95,10 @@ def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
 def make_plan(args: argparse.Namespace) -> Plan:
     path = Path(args.config) if args.config else DEFAULT_FILE
     data = load_toml(path)
-    unknown = set(data) - {"cluster", "train", "services"}
+    unknown = set(data) - {"cluster", "train", "services", "link"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; expected cluster, "
-                          "train, services")
+                          "train, services, link")
     cluster = data.get("cluster", {})
     if set(cluster) - CLUSTER_KEYS:
         raise ConfigError(f"{path} [cluster]: unknown key(s) {sorted(set(cluster) - CLUSTER_KEYS)}"
@@ -137,10 +140,32 @@ def make_plan(args: argparse.Namespace) -> Plan:
     endpoint = args.endpoint or cluster.get("endpoint", "tcp/127.0.0.1:auto")
     if endpoint.endswith(":auto"):
         endpoint = f"{endpoint[:-len('auto')]}{free_port()}"
+    link = link_settings(data.get("link", {}), args, path)
+    link_endpoint = ""
+    if any(link.get(k, 0) for k in LINK_KEYS[:4]):
+        link_endpoint = f"tcp/127.0.0.1:{free_port()}"
     return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
                 stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
                 start_timeout_s=float(cluster.get("start_timeout_s", 120)),
-                train=train_config, services=start_order(services), source=str(path))
+                train=train_config, services=start_order(services), source=str(path),
+                link=link, link_endpoint=link_endpoint)
+
+
+def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:
+    """The [link] section with --link-* flags on top; every value a number ≥ 0."""
+    unknown = set(section) - set(LINK_KEYS)
+    if unknown:
+        raise ConfigError(f"{path} [link]: unknown key(s) {sorted(unknown)}; known: "
+                          f"{list(LINK_KEYS)}")
+    link = dict(section)
+    for key in LINK_KEYS:
+        flag = getattr(args, f"link_{key}", None)
+        if flag is not None:
+            link[key] = flag
+    for key, value in link.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise ConfigError(f"[link] {key}={value!r}: expected a number ≥ 0 (0 = off)")
+    return link
 
 
 def coerce_train(values: dict) -> TrainConfig:
@@ -219,8 +244,11 @@ class Display:
         with self.lock:
             learner = self.latest.get(("learner", "0"), {})
             replay = self.latest.get(("replay", "0"), {})
+            link = self.latest.get(("link", "0"))
         if not learner:
             return f"starting… actors {alive_actors}/{total_actors}"
+        link_text = (f" | link ↑{link.get('up_bytes_per_s', 0) / 1e3:,.0f} "
+                     f"↓{link.get('down_bytes_per_s', 0) / 1e3:,.0f} kB/s") if link else ""
         step, total = int(learner.get("global_step", 0)), int(learner.get("total_timesteps", 0))
         pct = f" ({100 * step / total:.0f}%)" if total else ""
         ret = learner.get("mean_return", math.nan)
@@ -229,7 +257,7 @@ class Display:
                 f"{ret:,.1f} | replay {fill[0]} fragments + {fill[1]:,} steps | lag "
                 f"{learner.get('param_version_lag', math.nan):.1f} versions | "
                 f"{int(learner.get('updates', 0)):,} updates | actors {alive_actors}/"
-                f"{total_actors}")
+                f"{total_actors}{link_text}")
 
     def echo(self, text: str) -> None:
         with self.lock:
@@ -269,7 +297,8 @@ class Cluster:
         path.write_text(to_toml(self.plan.train))
         (self.run_dir / "cluster.json").write_text(json.dumps({
             "source": self.plan.source, "run_id": self.plan.run_id,
-            "endpoint": self.plan.endpoint,
+            "endpoint": self.plan.endpoint, "link": self.plan.link,
+            "link_endpoint": self.plan.link_endpoint,
             "services": [dataclasses.asdict(s) for s in self.plan.services],
             "train": dataclasses.asdict(service_config)}, indent=2))
         return path
@@ -279,11 +308,20 @@ class Cluster:
                 "--run-id", self.plan.run_id]
         if spec.role == "replay":
             argv += ["--listen", self.plan.endpoint]
+        elif spec.role == "actor" and self.plan.link_endpoint:
+            argv += ["--connect", self.plan.link_endpoint]  # actors sit behind the link
         else:
             argv += ["--connect", self.plan.endpoint]
         if spec.role == "actor":
             argv += ["--actor-id", str(index)]
         return argv + [str(a) for a in spec.args]
+
+    def link_argv(self) -> list[str]:
+        argv = [*resolve_command("tpdeb-link"), "--listen", self.plan.link_endpoint,
+                "--connect", self.plan.endpoint, "--run-id", self.plan.run_id]
+        for key, value in self.plan.link.items():
+            argv += [f"--{key.replace('_', '-')}", str(value)]
+        return argv
 
     def run(self) -> int:
         train_file = self.write_run_dir()
@@ -297,6 +335,9 @@ class Cluster:
             # what it needs (the router, the run spec, the first parameters), so their slow
             # imports overlap. The checks below then name the one that fails to come up.
             for spec in self.plan.services:
+                if spec.role == "actor" and self.plan.link_endpoint:
+                    self.children.append(Child("link", self.link_argv(), dict(os.environ),
+                                               self.run_dir / "logs", say))
                 for i in range(spec.replicas):
                     name = spec.role if spec.replicas == 1 else f"{spec.role}-{i}"
                     env = {**os.environ, **{k: str(v) for k, v in spec.env.items()}}
@@ -344,6 +385,7 @@ class Cluster:
         actors = [c for c in self.children if c.name.startswith("actor")]
         learner = next(c for c in self.children if c.name == "learner")
         replay = next(c for c in self.children if c.name == "replay")
+        link = next((c for c in self.children if c.name == "link"), None)
         reported: set[str] = set()
         while not self.stopping.is_set():
             if learner.proc.poll() is not None:
@@ -351,6 +393,10 @@ class Cluster:
                 self.display.echo(f"[{PROG}] learner exited with code {code}")
                 return 0 if code == 0 and not self.interrupted else (130 if self.interrupted
                                                                     else 1)
+            if link is not None and link.proc.poll() is not None and learner.proc.poll() is None:
+                self.display.echo(f"[{PROG}] link exited with code {link.proc.returncode}: "
+                                  f"stopping the run (see {self.run_dir}/logs/link.log)")
+                return 1
             if replay.proc.poll() is not None and not (
                     replay.proc.returncode == 0 and self.learner_finishing(learner)):
                 self.display.echo(f"[{PROG}] replay exited with code {replay.proc.returncode}: "
@@ -417,6 +463,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--endpoint", help="router endpoint, e.g. tcp/127.0.0.1:7447")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="any training setting, e.g. --set learning_rate=3e-4 (repeatable)")
+    for key in LINK_KEYS:
+        p.add_argument(f"--link-{key.replace('_', '-')}", type=float, metavar="X",
+                       help=f"link shim {key} between actors and the rest (0 = off; overrides "
+                       "[link])")
     return p.parse_args(argv)
 
 

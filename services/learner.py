@@ -47,6 +47,7 @@ from services.zsession import (
 from tpdeb_core.learner import Learner
 
 PROG = "tpdeb-learner"
+LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")
 
 
 class LearnerService:
@@ -63,6 +64,7 @@ class LearnerService:
         self.stats_inbox: queue.Queue = queue.Queue()
         self.global_step = 0
         self.replay_stats: dict = {}
+        self.link_stats: dict = {}
         self.actor_versions: dict[str, int] = {}
         self.trained_keys: set[int] = set()
         self.replay_items = config.prioritized_capacity + (
@@ -218,6 +220,8 @@ class LearnerService:
                 continue
             if stats.role == "replay":
                 self.replay_stats = stats.values
+            elif stats.role == "link":
+                self.link_stats = stats.values
             elif stats.role == "actor":
                 self.actor_versions[stats.ident] = int(stats.values.get("param_version", 0))
                 for ret, length in zip(stats.episode_returns.tolist(),
@@ -255,6 +259,11 @@ class LearnerService:
         values["actor/param_version_lag"] = self.param_version_lag()
         values.update({f"replay/{k}": v for k, v in self.replay_stats.items()
                        if isinstance(v, (int, float)) and "/" not in k})
+        values.update({f"link/{k}": self.link_stats[k] for k in LINK_TAGS if k in self.link_stats})
+        if self.link_stats and self.global_step:
+            for way in ("up", "down"):
+                values[f"link/{way}_bytes_per_env_step"] = \
+                    self.link_stats.get(f"{way}_bytes_total", 0) / self.global_step
         self.metrics.log(self.global_step, values)
         self.metrics.flush()
         self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0

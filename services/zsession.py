@@ -35,6 +35,9 @@ def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeo
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
                       json.dumps(BLOCK_WAIT_BEFORE_CLOSE_MS * 1000))  # microseconds
     conf.insert_json5("transport/link/tx/lease", json.dumps(lease_ms))
+    # Shared memory would carry payloads between processes of one host around the TCP link,
+    # past the link shim: every byte must cross the network path it would cross between hosts.
+    conf.insert_json5("transport/shared_memory/enabled", "false")
     if mode == "client":
         # Keep retrying the router for a while: services may start in any order.
         timeout_ms = int(connect_timeout_s * 1e3)
