@@ -12,6 +12,7 @@ from dataclasses import fields
 
 import msgpack
 import numpy as np
+import zstandard
 
 from protocol.keys import SCHEMA_VERSION
 from protocol.messages import MESSAGE_TYPES, Params, RunSpec
@@ -52,13 +53,51 @@ def _body(msg, where: str) -> dict:
     return {f.name: _to_wire(getattr(msg, f.name), f"{where}.{f.name}") for f in fields(msg)}
 
 
-def encode(msg) -> bytes:
-    """The wire bytes of a message. Values are not validated here; the receiver's decode is."""
+COMPRESSIONS = ("none", "zstd")
+# zstd level 3: on HalfCheetah fragments it saves as much as level 9 (ratio 1.27) at a quarter
+# of the time (~25 µs per fragment); lz4 was faster but saved less (1.21).
+_ZSTD_LEVEL = 3
+
+
+def encode(msg, compression: str = "none") -> bytes:
+    """The wire bytes of a message. Values are not validated here; the receiver's decode is.
+    With compression "zstd" the body travels compressed (envelope key `zbody`)."""
     name = type(msg).__name__
     if MESSAGE_TYPES.get(name) is not type(msg):
         raise TypeError(f"cannot encode {name}: not one of {sorted(MESSAGE_TYPES)}")
-    envelope = {"v": SCHEMA_VERSION, "type": name, "body": _body(msg, name)}
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"compression={compression!r}: use one of {COMPRESSIONS}")
+    body = _body(msg, name)
+    if compression == "zstd":
+        packed = msgpack.packb(body, use_bin_type=True)
+        envelope = {"v": SCHEMA_VERSION, "type": name,
+                    "zbody": zstandard.ZstdCompressor(level=_ZSTD_LEVEL).compress(packed)}
+    else:
+        envelope = {"v": SCHEMA_VERSION, "type": name, "body": body}
     return msgpack.packb(envelope, use_bin_type=True)
+
+
+def _unpack(data, size: int, what: str):
+    try:
+        # Limits scaled to the payload: a few bytes cannot claim a huge str, list or map.
+        return msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=size,
+                               max_str_len=size, max_array_len=size, max_map_len=size // 2,
+                               max_ext_len=0)
+    except Exception as e:  # msgpack raises several types (ValueError, ExtraData, StackError…)
+        raise DecodeError("msgpack", f"{what}{type(e).__name__}: {short(str(e), 120)}") from None
+
+
+def _decompress(blob, max_bytes: int):
+    if type(blob) is not bytes:
+        raise DecodeError("field", f"zbody is {type(blob).__name__}, expected bytes")
+    try:
+        reader = zstandard.ZstdDecompressor().stream_reader(blob)
+        out = reader.read(max_bytes + 1)  # never inflate past the size limit
+    except zstandard.ZstdError as e:
+        raise DecodeError("msgpack", f"zbody does not decompress: {short(str(e), 120)}") from None
+    if len(out) > max_bytes:
+        raise DecodeError("size", f"zbody inflates past {max_bytes} bytes")
+    return _unpack(out, len(out), "zbody: ")
 
 
 def decode(data: bytes, expected: type | tuple[type, ...], spec: RunSpec | None = None,
@@ -70,13 +109,7 @@ def decode(data: bytes, expected: type | tuple[type, ...], spec: RunSpec | None 
     size = data.nbytes if isinstance(data, memoryview) else len(data)
     if size > max_bytes:
         raise DecodeError("size", f"{size} bytes, at most {max_bytes}")
-    try:
-        # Limits scaled to the payload: a few bytes cannot claim a huge str, list or map.
-        top = msgpack.unpackb(data, raw=False, strict_map_key=True, max_bin_len=size,
-                              max_str_len=size, max_array_len=size, max_map_len=size // 2,
-                              max_ext_len=0)
-    except Exception as e:  # msgpack raises several types (ValueError, ExtraData, StackError…)
-        raise DecodeError("msgpack", f"{type(e).__name__}: {short(str(e), 120)}") from None
+    top = _unpack(data, size, "")
     if type(top) is not dict:
         raise DecodeError("msgpack", f"top level is {type(top).__name__}, expected a map")
     version = top.get("v")
@@ -89,11 +122,12 @@ def decode(data: bytes, expected: type | tuple[type, ...], spec: RunSpec | None 
     if cls is None or cls not in expected:
         wanted = [c.__name__ for c in expected]
         raise DecodeError("type", f"got {short(name)}, expected {' or '.join(wanted)}")
-    if top.keys() != {"v", "type", "body"}:
+    if top.keys() not in ({"v", "type", "body"}, {"v", "type", "zbody"}):
         raise DecodeError("field", f"envelope keys {sorted(map(short, top))}, expected "
-                                   "v, type and body")
+                                   "v, type and body (or zbody)")
+    body = top["body"] if "body" in top else _decompress(top["zbody"], max_bytes)
     try:
-        return load_message(cls, top["body"], spec)
+        return load_message(cls, body, spec)
     except DecodeError:
         raise
     except Exception as e:  # a rule that trips over hostile input must still not crash a service

@@ -119,7 +119,8 @@ class Params:
     """Learner → actors: the model's state_dict as numpy (normaliser included), versioned."""
 
     version: int = wire(Int())
-    arrays: dict[str, np.ndarray] = wire(DictOf(Str(min_len=1), Array("<f4 <f8 <i8", "*")))
+    # float16 when the learner broadcasts weights at reduced precision (params_dtype)
+    arrays: dict[str, np.ndarray] = wire(DictOf(Str(min_len=1), Array("<f2 <f4 <f8 <i8", "*")))
     source: str = wire(Str(), default="learner")
 
 

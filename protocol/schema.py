@@ -18,7 +18,7 @@ ERROR_KINDS = ("size", "msgpack", "version", "type", "field", "dtype", "shape", 
                "value")
 
 # Explicitly little-endian (or byte-order-free) dtypes: what may travel, whatever the host.
-WIRE_DTYPES = {s: np.dtype(s) for s in ("<f4", "<f8", "<i4", "<i8", "|b1", "|u1")}
+WIRE_DTYPES = {s: np.dtype(s) for s in ("<f2", "<f4", "<f8", "<i4", "<i8", "|b1", "|u1")}
 ND_KEYS = frozenset({"__nd__", "dtype", "shape", "data"})
 MAX_NDIM = 8
 INT64_MIN, INT64_MAX = -(2**63), 2**63 - 1

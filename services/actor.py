@@ -184,7 +184,8 @@ class ActorService:
             # back-pressure: wait for acks, resend the lost, keep the parameters fresh
             self.resend_due(time.monotonic())
             self.refresh_params()
-        payload = encode(fragment_to_message(fragment, self.model.reward_scale()))
+        payload = encode(fragment_to_message(fragment, self.model.reward_scale()),
+                         self.config.trajectory_compression)
         self.outbox.add(fragment.seq, payload, time.monotonic())
         self.traj_publisher.put(payload)
         self.sent += 1

@@ -90,7 +90,7 @@ class LearnerService:
 
     # -- parameters down
     def publish_params(self) -> None:
-        data = encode(params_message(self.model, self.learner.updates))
+        data = encode(params_message(self.model, self.learner.updates, self.config.params_dtype))
         with self.params_lock:
             self.params_bytes = data
         self.params_publisher.put(data)

@@ -92,6 +92,11 @@ class TrainConfig:
     """clip normalised observations to ±this"""
     params_publish_interval: int = 1
     """learner updates between parameter publications to the actors"""
+    params_dtype: str = "float32"
+    """float32 | float16: precision of the weights broadcast to the actors (normaliser
+    statistics always travel in float64)"""
+    trajectory_compression: str = "none"
+    """none | zstd: lossless compression of the fragments actors send"""
     torch_threads: int = 1
     """torch intra-op threads (1 leaves the other core to the environments)"""
     run_dir: str = ""
@@ -115,6 +120,10 @@ class TrainConfig:
              f"must be one of {', '.join(PRIORITY_MODES)}"),
             (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
             (self.params_publish_interval >= 1, "params_publish_interval", "must be ≥ 1"),
+            (self.params_dtype in ("float32", "float16"), "params_dtype",
+             "must be float32 or float16"),
+            (self.trajectory_compression in ("none", "zstd"), "trajectory_compression",
+             "must be none or zstd"),
             (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
              "needs at least one positive layer size"),
         ]

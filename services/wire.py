@@ -51,9 +51,17 @@ def message_to_fragment(message: Trajectory) -> Fragment:
     return Fragment(**{name: getattr(message, name) for name in _FRAGMENT_FIELDS})
 
 
-def params_message(model: ActorCritic, version: int) -> Params:
-    return Params(version=int(version),
-                  arrays={k: v.detach().cpu().numpy() for k, v in model.state_dict().items()})
+FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
+def params_message(model: ActorCritic, version: int, dtype: str = "float32") -> Params:
+    """The model's state as a message; with dtype float16 the float32 weights are halved
+    (a tensor with values beyond float16's range stays float32)."""
+    arrays = {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
+    if dtype == "float16":
+        arrays = {k: a.astype(np.float16) if a.dtype == np.float32 and (
+            a.size == 0 or np.abs(a).max() < FLOAT16_MAX) else a for k, a in arrays.items()}
+    return Params(version=int(version), arrays=arrays)
 
 
 def expected_shapes(model: ActorCritic) -> dict[str, tuple[int, ...]]:
@@ -65,10 +73,12 @@ def load_params(model: ActorCritic, message: Params) -> None:
     check_params_shapes(message, expected_shapes(model))
     state = model.state_dict()
     for name, array in message.arrays.items():
-        if np.dtype(array.dtype) != torch.empty((), dtype=state[name].dtype).numpy().dtype:
+        held = torch.empty((), dtype=state[name].dtype).numpy().dtype
+        if array.dtype != held and not (array.dtype == np.float16 and held == np.float32):
             raise DecodeError("dtype", f"params[{name!r}] is {array.dtype}, "
                               f"the model holds {state[name].dtype}")
-    model.load_state_dict({k: torch.from_numpy(np.array(v)) for k, v in message.arrays.items()})
+    model.load_state_dict({k: torch.from_numpy(np.array(v, dtype=state[k].numpy().dtype))
+                           for k, v in message.arrays.items()})
 
 
 def finite_values(values: dict) -> dict:
