@@ -15,6 +15,7 @@ import time
 
 import numpy as np
 import torch
+import zenoh
 
 from protocol import (
     Ack,
@@ -96,7 +97,10 @@ class ActorService:
         self.latest_params: bytes | None = None
         self.params_lock = threading.Lock()
         s, k = session, self.keys
-        self.traj_publisher = s.declare_publisher(k.traj(config.actor_id))
+        # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
+        # outbox bounds how much can wait; wait_before_close is set far above that).
+        self.traj_publisher = s.declare_publisher(
+            k.traj(config.actor_id), congestion_control=zenoh.CongestionControl.BLOCK)
         self.stats_publisher = s.declare_publisher(k.stats("actor", config.actor_id))
         self.subscribers = [
             s.declare_subscriber(k.params, self._on_params),

@@ -17,6 +17,7 @@ from collections import deque
 
 import numpy as np
 import torch
+import zenoh
 
 from protocol import (
     Control,
@@ -77,7 +78,11 @@ class LearnerService:
         self.params_bytes = b""
         self.params_lock = threading.Lock()
         s, k = session, self.keys
-        self.params_publisher = s.declare_publisher(k.params)
+        # Parameters: latest wins, so a congested link may drop one (the next supersedes it);
+        # low priority keeps them from delaying acks and control messages.
+        self.params_publisher = s.declare_publisher(
+            k.params, congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_LOW)
         self.priorities_publisher = s.declare_publisher(k.priorities)
         self.control_publisher = s.declare_publisher(k.control)
         self.stats_publisher = s.declare_publisher(k.stats("learner", 0))

@@ -15,6 +15,7 @@ from collections import defaultdict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
+import zenoh
 
 from protocol import (
     Ack,
@@ -173,7 +174,9 @@ class ReplayServer:
                 continue
             publisher = self.ack_publishers.get(actor_id)
             if publisher is None:
-                publisher = self.session.declare_publisher(self.keys.ack(actor_id))
+                # Acks are small and unblock actors: ahead of bulk data on a shared link.
+                publisher = self.session.declare_publisher(
+                    self.keys.ack(actor_id), priority=zenoh.Priority.DATA_HIGH, express=True)
                 self.ack_publishers[actor_id] = publisher
             publisher.put(encode(Ack(actor_id=actor_id, seqs=np.array(ledger.unacked, np.int64),
                                      ingested=ledger.ingested)))
