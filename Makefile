@@ -7,7 +7,7 @@ TORCH_SPEC ?= torch==2.13.0
 BIN := $(VENV)/bin
 ARGS ?=
 
-.PHONY: install run serial test lint bench-replay bench-learn bench-throughput clean
+.PHONY: install run serial test lint bench-replay bench-learn bench-throughput bench-bandwidth clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -41,6 +41,9 @@ bench-learn: install
 
 bench-throughput: install
 	$(BIN)/python bench/throughput.py
+
+bench-bandwidth: install
+	$(BIN)/python bench/bandwidth.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

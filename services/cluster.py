@@ -314,7 +314,15 @@ class Cluster:
             argv += ["--connect", self.plan.endpoint]
         if spec.role == "actor":
             argv += ["--actor-id", str(index)]
+        if self.plan.link_endpoint and spec.role in ("replay", "actor"):
+            argv += ["--tcp-buffer-bytes", str(self.link_tcp_buffer())]
         return argv + [str(a) for a in spec.args]
+
+    def link_tcp_buffer(self) -> int:
+        """A quarter second at the link's slowest throttled rate (the kernel doubles it)."""
+        rates = [self.plan.link.get(k, 0) for k in ("up_bytes_per_s", "down_bytes_per_s")]
+        slowest = min((r for r in rates if r > 0), default=0)
+        return max(16384, int(slowest * 0.25)) if slowest else 0
 
     def link_argv(self) -> list[str]:
         argv = [*resolve_command("tpdeb-link"), "--listen", self.plan.link_endpoint,

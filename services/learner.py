@@ -84,7 +84,9 @@ class LearnerService:
             k.params, congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.DATA_LOW)
         self.priorities_publisher = s.declare_publisher(k.priorities)
-        self.control_publisher = s.declare_publisher(k.control)
+        self.control_publisher = s.declare_publisher(
+            k.control, congestion_control=zenoh.CongestionControl.BLOCK,
+            priority=zenoh.Priority.INTERACTIVE_HIGH)
         self.stats_publisher = s.declare_publisher(k.stats("learner", 0))
         self.latest_queryable = s.declare_queryable(k.params_latest, self._answer_latest)
         self.stats_subscriber = s.declare_subscriber(k.stats_all, self.stats_inbox.put)

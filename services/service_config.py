@@ -27,6 +27,9 @@ class ServiceConfig(TrainConfig):
     """how long to wait for the router (and for the run spec) before giving up"""
     stats_interval_s: float = 1.0
     """seconds between stats publications"""
+    tcp_buffer_bytes: int = 0
+    """socket buffers of this process's Zenoh TCP links (0: the OS's autotuning); small values
+    keep a throttled link from queueing seconds of data ahead of acks and keep-alives"""
     max_message_bytes: int = 16 * 2**20
     """incoming messages larger than this are dropped unread (and counted)"""
 

@@ -25,7 +25,7 @@ BLOCK_WAIT_BEFORE_CLOSE_MS = 60_000
 
 
 def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeout_s: float = 60.0,
-                 lease_ms: int = 10_000):
+                 lease_ms: int = 10_000, tcp_buffer_bytes: int = 0):
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
@@ -38,6 +38,12 @@ def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeo
     # Shared memory would carry payloads between processes of one host around the TCP link,
     # past the link shim: every byte must cross the network path it would cross between hosts.
     conf.insert_json5("transport/shared_memory/enabled", "false")
+    if tcp_buffer_bytes:
+        # On a throttled link the kernel's autotuned send buffer (MBs on loopback) would queue
+        # seconds of data ahead of acks and keep-alives; a small one keeps the queue in Zenoh,
+        # where priorities apply.
+        for option in ("so_sndbuf", "so_rcvbuf"):
+            conf.insert_json5(f"transport/link/tcp/{option}", json.dumps(tcp_buffer_bytes))
     if mode == "client":
         # Keep retrying the router for a while: services may start in any order.
         timeout_ms = int(connect_timeout_s * 1e3)
@@ -56,13 +62,14 @@ def check_endpoints(name: str, endpoints: list[str]) -> None:
 
 
 def open_session(mode: str, listen: list[str], connect: list[str],
-                 connect_timeout_s: float = 60.0) -> zenoh.Session:
+                 connect_timeout_s: float = 60.0, tcp_buffer_bytes: int = 0) -> zenoh.Session:
     """Open a session, turning Zenoh's errors into one line a user can act on. A client waits
     up to `connect_timeout_s` for its router (install signal handlers after this returns)."""
     check_endpoints("listen", listen)
     check_endpoints("connect", connect)
     try:
-        return zenoh.open(zenoh_config(mode, listen, connect, connect_timeout_s))
+        return zenoh.open(zenoh_config(mode, listen, connect, connect_timeout_s,
+                                       tcp_buffer_bytes=tcp_buffer_bytes))
     except zenoh.ZError as exc:
         text = str(exc)
         if listen and ("in use" in text.lower() or "bind" in text.lower()):
@@ -78,7 +85,8 @@ def open_session(mode: str, listen: list[str], connect: list[str],
 
 def open_for(config, mode: str = "client") -> zenoh.Session:
     """A service's session from its config's listen/connect endpoints."""
-    return open_session(mode, list(config.listen), list(config.connect), config.connect_timeout_s)
+    return open_session(mode, list(config.listen), list(config.connect), config.connect_timeout_s,
+                        config.tcp_buffer_bytes)
 
 
 def fail(prog: str, exc: Exception) -> int:
