@@ -196,3 +196,27 @@ def test_ctrl_c_stops_the_cluster_in_order_with_a_checkpoint(procs, tmp_path):
     assert "SIGINT: stopping the services" in out
     assert list((run_dir / "checkpoints").glob("final_*.pt")), out[-3000:]
     assert not pids_with(str(run_dir))  # every service is gone
+
+
+def test_cluster_behind_a_throttled_link_reports_what_crossed_it(procs, tmp_path):
+    run_dir = tmp_path / "run"
+    cluster = procs.spawn(
+        "cluster", "--env-id", ENV, "--total-timesteps", "6000", "--num-envs", "2",
+        "--run-dir", str(run_dir), "--link-up-bytes-per-s", "32768",
+        "--link-down-bytes-per-s", "131072", "--link-latency-ms", "20",
+        "--set", "log_interval_s=1", "--set", "trajectory_compression=zstd",
+        "--set", "params_dtype=float16")
+    assert cluster.wait(300) == 0, procs.output(cluster)[-3000:]
+    rows = read_metrics(run_dir / "metrics.jsonl")
+    link = [r for r in rows if "link/up_bytes_per_s" in r]
+    assert link, "no link/* metrics"
+    for key in ("link/down_bytes_per_s", "link/queue_bytes", "link/latency_ms",
+                "link/up_bytes_per_env_step"):
+        assert key in link[-1], key
+    # the setting bounds what went up (per-second readings jitter a little around it)
+    assert max(r["link/up_bytes_per_s"] for r in link) <= 1.2 * 32768
+    assert min(r["link/latency_ms"] for r in link) >= 20
+    # every fragment crossed the link: the bytes per env step are the fragments' size, not a
+    # shared-memory side channel (an InvertedPendulum step is ~40 bytes compressed)
+    assert link[-1]["link/up_bytes_per_env_step"] > 20
+    assert "⇄" in (run_dir / "logs" / "link.log").read_text()
