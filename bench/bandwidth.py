@@ -46,7 +46,7 @@ def link_name(rate: float) -> str:
 
 def run_one(env_id: str, steps: int, seed: int, rate: float, variant: str, compression: str,
             timeout_s: float) -> dict:
-    tag = f"{int(rate) if rate else 0}__{variant}__{compression}__{seed}"
+    tag = f"{env_id}__{steps}__{int(rate) if rate else 0}__{variant}__{compression}__{seed}"
     result_file = OUT / f"{tag}.json"
     if result_file.exists():
         return json.loads(result_file.read_text())

@@ -3,8 +3,9 @@
 Delivery: every fragment gets a per-actor sequence number and stays in the outbox until the
 replay server acknowledges it; unacknowledged ones are resent after `resend_after_s` (the
 replay de-duplicates). A full outbox makes the actor wait: back-pressure instead of loss.
-New parameters arrive on a subscriber that only keeps the latest bytes; the loop loads them
-between env steps, so the actor never stalls on the network.
+New parameters arrive through a long poll (one request in flight, answered when a newer
+version exists) that only keeps the latest bytes; the loop loads them between env steps, so the
+actor never stalls on the network.
 """
 
 from __future__ import annotations
@@ -43,6 +44,7 @@ from services.zsession import (
 from tpdeb_core.fragments import Collector
 
 PROG = "tpdeb-actor"
+PARAMS_POLL_S = 10.0
 
 
 class Outbox:
@@ -96,6 +98,8 @@ class ActorService:
         self.sent = self.resent = 0
         self.latest_params: bytes | None = None
         self.params_lock = threading.Lock()
+        self.params_wanted = threading.Event()
+        self.puller = threading.Thread(target=self._pull_params, daemon=True, name="params")
         s, k = session, self.keys
         # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
         # outbox bounds how much can wait; wait_before_close is set far above that).
@@ -103,7 +107,6 @@ class ActorService:
             k.traj(config.actor_id), congestion_control=zenoh.CongestionControl.BLOCK)
         self.stats_publisher = s.declare_publisher(k.stats("actor", config.actor_id))
         self.subscribers = [
-            s.declare_subscriber(k.params, self._on_params),
             s.declare_subscriber(k.ack(config.actor_id), self._on_ack),
             s.declare_subscriber(k.control, self._on_control),
         ]
@@ -131,7 +134,7 @@ class ActorService:
 
     # -- parameters
     def wait_for_params(self) -> None:
-        """Block until the learner's first parameters arrive (queried, then subscribed)."""
+        """Block until the learner's first parameters arrive."""
         deadline = time.monotonic() + self.config.connect_timeout_s
         while not self.stop and time.monotonic() < deadline:
             if self.latest_params is None:
@@ -146,11 +149,29 @@ class ActorService:
                               f"within {self.config.connect_timeout_s:g} s (is tpdeb-learner "
                               "running?)")
 
+    def _pull_params(self) -> None:
+        """Long-poll the learner for the next version: one request in flight, answered as soon
+        as a version newer than ours exists, asked again once the loop has loaded it. On a thin
+        link only parameters that will be used cross it."""
+        while not self.stop:
+            if not self.params_wanted.wait(0.5):
+                continue
+            self.params_wanted.clear()
+            selector = f"{self.keys.params_latest}?after={self.collector.policy_version}"
+            got = False
+            for reply in self.session.get(selector, timeout=PARAMS_POLL_S):
+                if reply.ok is not None:
+                    self._on_params(reply.ok)
+                    got = True
+            if not got:
+                self.params_wanted.set()  # no newer version in time (or no learner): ask again
+
     def refresh_params(self) -> bool:
         with self.params_lock:
             data, self.latest_params = self.latest_params, None
         if data is None:
             return False
+        self.params_wanted.set()
         try:
             message = decode(data, Params, max_bytes=self.config.max_message_bytes)
             if message.version < self.collector.policy_version:
@@ -166,6 +187,8 @@ class ActorService:
     def run(self) -> None:
         cfg = self.config
         self.wait_for_params()
+        self.params_wanted.set()
+        self.puller.start()
         say(PROG, f"actor {cfg.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
                   f"v{self.collector.policy_version}")
         last_stats = last_check = time.monotonic()

@@ -76,10 +76,12 @@ class LearnerService:
         self.count = 0
         self.wait_s = self.update_s = 0.0
         self.params_bytes = b""
+        self.params_version = -1
+        self.waiting_queries: list = []
         self.params_lock = threading.Lock()
         s, k = session, self.keys
-        # Parameters: latest wins, so a congested link may drop one (the next supersedes it);
-        # low priority keeps them from delaying acks and control messages.
+        # Monitors may subscribe; actors pull through params/latest instead (see
+        # _answer_latest). Latest wins, so a congested link may drop one.
         self.params_publisher = s.declare_publisher(
             k.params, congestion_control=zenoh.CongestionControl.DROP,
             priority=zenoh.Priority.DATA_LOW)
@@ -97,16 +99,39 @@ class LearnerService:
 
     # -- parameters down
     def publish_params(self) -> None:
+        """Answer the actors' waiting parameter queries with the new version (and put it on the
+        `params` key for any monitor)."""
         data = encode(params_message(self.model, self.learner.updates, self.config.params_dtype))
         with self.params_lock:
-            self.params_bytes = data
+            self.params_bytes, self.params_version = data, self.learner.updates
+            waiting, self.waiting_queries = self.waiting_queries, []
+        for query in waiting:
+            self._reply(query, data)
         self.params_publisher.put(data)
 
     def _answer_latest(self, query) -> None:
+        """Long poll: `params/latest?after=V` is answered as soon as a version newer than V
+        exists. Actors pull one version at a time, so a thin link carries only parameters
+        someone will use and never queues stale ones ahead of acks."""
+        after = query.parameters.get("after")
+        try:
+            after = int(after) if after is not None else -1
+        except ValueError:
+            after = -1
         with self.params_lock:
-            data = self.params_bytes
+            data = self.params_bytes if self.params_version > after else b""
+            if not data:
+                self.waiting_queries.append(query)
         if data:
+            self._reply(query, data)
+
+    def _reply(self, query, data: bytes) -> None:
+        try:
             query.reply(self.keys.params_latest, data)
+        except zenoh.ZError:
+            pass  # the asker gave up (timed out or left)
+        finally:
+            query.drop()
 
     # -- batches in
     def beta(self) -> float:
@@ -284,6 +309,10 @@ class LearnerService:
         if finished:
             self.control_publisher.put(encode(Control(command="stop", reason="total_timesteps")))
         self.stop.set("finished")
+        with self.params_lock:
+            waiting, self.waiting_queries = self.waiting_queries, []
+        for query in waiting:
+            query.drop()
         for fetcher in self.fetchers:
             fetcher.join(timeout=self.config.request_timeout_s)
         self.metrics.close()
