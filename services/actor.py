@@ -100,6 +100,7 @@ class ActorService:
         self.params_lock = threading.Lock()
         self.params_wanted = threading.Event()
         self.puller = threading.Thread(target=self._pull_params, daemon=True, name="params")
+        self.params_cancel = zenoh.CancellationToken()
         s, k = session, self.keys
         # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
         # outbox bounds how much can wait; wait_before_close is set far above that).
@@ -159,7 +160,8 @@ class ActorService:
             self.params_wanted.clear()
             selector = f"{self.keys.params_latest}?after={self.collector.policy_version}"
             got = False
-            for reply in self.session.get(selector, timeout=PARAMS_POLL_S):
+            for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
+                                          cancellation_token=self.params_cancel):
                 if reply.ok is not None:
                     self._on_params(reply.ok)
                     got = True
@@ -235,6 +237,12 @@ class ActorService:
             episode_lengths=np.array([n for _, n in episodes], np.int64))))
 
     def close(self) -> None:
+        # A thread still inside a Zenoh query when the interpreter exits aborts the process:
+        # cancel the long poll and wait for it first.
+        self.stop.set(self.stop.reason or "closing")
+        self.params_cancel.cancel()
+        if self.puller.is_alive():
+            self.puller.join(timeout=5)
         self.token.undeclare()
         self.envs.close()
 

@@ -93,6 +93,7 @@ class LearnerService:
         self.latest_queryable = s.declare_queryable(k.params_latest, self._answer_latest)
         self.stats_subscriber = s.declare_subscriber(k.stats_all, self.stats_inbox.put)
         self.token = s.liveliness().declare_token(k.alive("learner", 0))
+        self.fetch_cancel = zenoh.CancellationToken()
         self.fetchers = [threading.Thread(target=self._fetch_loop, args=(i,), daemon=True,
                                           name=f"fetch-{i}")
                          for i in range(config.requests_in_flight)]
@@ -146,7 +147,8 @@ class LearnerService:
                                     beta=self.beta())
             got = False
             for reply in self.session.get(self.keys.sample, payload=encode(request),
-                                          timeout=self.config.request_timeout_s):
+                                          timeout=self.config.request_timeout_s,
+                                          cancellation_token=self.fetch_cancel):
                 if reply.ok is None:
                     continue
                 try:
@@ -313,8 +315,10 @@ class LearnerService:
             waiting, self.waiting_queries = self.waiting_queries, []
         for query in waiting:
             query.drop()
+        self.fetch_cancel.cancel()  # no thread may sit in a query when the interpreter exits
         for fetcher in self.fetchers:
-            fetcher.join(timeout=self.config.request_timeout_s)
+            if fetcher.is_alive():
+                fetcher.join(timeout=self.config.request_timeout_s)
         self.metrics.close()
         self.token.undeclare()
         say(PROG, f"{'done' if finished else 'stopped'} at {self.global_step:,} steps, "
