@@ -160,11 +160,14 @@ class ActorService:
             self.params_wanted.clear()
             selector = f"{self.keys.params_latest}?after={self.collector.policy_version}"
             got = False
-            for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
-                                          cancellation_token=self.params_cancel):
-                if reply.ok is not None:
-                    self._on_params(reply.ok)
-                    got = True
+            try:
+                for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
+                                              cancellation_token=self.params_cancel):
+                    if reply.ok is not None:
+                        self._on_params(reply.ok)
+                        got = True
+            except zenoh.ZError:
+                return  # the session is closing
             if not got:
                 self.params_wanted.set()  # no newer version in time (or no learner): ask again
 
