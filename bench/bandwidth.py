@@ -9,8 +9,9 @@ link (at 10^12 B/s) so its bytes are counted the same way. Variants:
   TPDEB          ζ = 0.2, KL on (λ_kl 0.01)
   IMPACT-like    ζ = 0,   KL off
 each without and with compression (zstd trajectories + float16 parameters).
-Runs already finished (their result file exists) are skipped, so the grid can be filled in
-several sittings. Prints a markdown table (final return mean ± std over seeds, env steps/s,
+Runs already finished (their result file in docs/data/bandwidth exists) are skipped, so the
+grid can be filled in several sittings; `--report` only prints the table and redraws the figure
+from the finished runs. Prints a markdown table (final return mean ± std over seeds, env steps/s,
 parameter-version lag, bytes per env step up/down) and draws docs/img/bandwidth.png.
 """
 
@@ -26,7 +27,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "bench" / "out" / "bandwidth"
+OUT = ROOT / "bench" / "out" / "bandwidth"  # logs and run dirs (not committed)
+RESULTS = ROOT / "docs" / "data" / "bandwidth"  # one small JSON per finished run (committed)
 UNLIMITED = 1e12
 VARIANTS = {
     "TPDEB": ["--set", "zeta=0.2", "--set", "kl_coef=0.01"],
@@ -47,7 +49,7 @@ def link_name(rate: float) -> str:
 def run_one(env_id: str, steps: int, seed: int, rate: float, variant: str, compression: str,
             timeout_s: float) -> dict:
     tag = f"{env_id}__{steps}__{int(rate) if rate else 0}__{variant}__{compression}__{seed}"
-    result_file = OUT / f"{tag}.json"
+    result_file = RESULTS / f"{tag}.json"
     if result_file.exists():
         return json.loads(result_file.read_text())
     run_dir = OUT / "runs" / tag
@@ -142,8 +144,9 @@ def plot(results: list[dict], path: Path) -> None:
             curves = []
             for r in runs:
                 steps, returns = np.array(r["curve"]).T
-                smooth = np.convolve(returns, np.ones(10) / 10, mode="same")
-                curves.append(np.interp(grid, steps, smooth))
+                k = min(10, len(returns))  # trailing mean of the last k episodes, no edge dip
+                smooth = np.convolve(returns, np.ones(k) / k, mode="valid")
+                curves.append(np.interp(grid, steps[k - 1:], smooth))
             mean, std = np.mean(curves, 0), np.std(curves, 0)
             ax.plot(grid, mean, style, label=f"{variant}, {compression}")
             ax.fill_between(grid, mean - std, mean + std, color=style[:2], alpha=0.12)
@@ -168,8 +171,16 @@ def main() -> None:
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS))
     parser.add_argument("--compression", nargs="+", default=list(COMPRESSION))
     parser.add_argument("--timeout-s", type=float, default=3600)
+    parser.add_argument("--report", action="store_true",
+                        help="no runs: table and figure from the finished runs")
     args = parser.parse_args()
+    if args.report:
+        results = [json.loads(p.read_text()) for p in sorted(RESULTS.glob("*.json"))]
+        print(table(results))
+        plot(results, ROOT / "docs" / "img" / "bandwidth.png")
+        return
     OUT.mkdir(parents=True, exist_ok=True)
+    RESULTS.mkdir(parents=True, exist_ok=True)
     jobs = [(rate, variant, compression, seed) for rate in args.links for seed in args.seeds
             for variant in args.variants for compression in args.compression]
     print(f"[bandwidth] {len(jobs)} runs of {args.total_timesteps:,} steps on {args.env_id}; "
@@ -177,7 +188,7 @@ def main() -> None:
     results = [run_one(args.env_id, args.total_timesteps, seed, rate, variant, compression,
                        args.timeout_s) for rate, variant, compression, seed in jobs]
     results = [r for r in results if r["exit_code"] == 0]
-    (OUT / "results.json").write_text(json.dumps(results))
+    (OUT / "results.json").write_text(json.dumps(results))  # this invocation's runs
     print()
     print(table(results))
     plot(results, ROOT / "docs" / "img" / "bandwidth.png")
