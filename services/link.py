@@ -194,7 +194,8 @@ class Link:
             await asyncio.get_running_loop().sock_connect(sock, info[4])
             router_reader, router_writer = await asyncio.open_connection(sock=sock)
         except OSError as exc:
-            say(PROG, f"cannot reach {self.config.connect}: {exc}")
+            say(PROG, f"cannot reach the router at {self.config.connect} ({exc.strerror}): is "
+                      "tpdeb-replay running there? (normal while a run is shutting down)")
             actor_writer.close()
             return
         self.connections += 1
