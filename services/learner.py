@@ -66,7 +66,7 @@ class LearnerService:
         self.global_step = 0
         self.replay_stats: dict = {}
         self.link_stats: dict = {}
-        self.actor_versions: dict[str, int] = {}
+        self.actors_heard: set[str] = set()  # actors whose stats arrived
         self.trained_keys: set[int] = set()
         self.replay_items = config.prioritized_capacity + (
             config.uniform_capacity_steps // config.fragment_len)
@@ -257,7 +257,7 @@ class LearnerService:
             elif stats.role == "link":
                 self.link_stats = stats.values
             elif stats.role == "actor":
-                self.actor_versions[stats.ident] = int(stats.values.get("param_version", 0))
+                self.actors_heard.add(stats.ident)
                 for ret, length in zip(stats.episode_returns.tolist(),
                                        stats.episode_lengths.tolist(), strict=True):
                     self.recent_returns.append(ret)
@@ -275,7 +275,7 @@ class LearnerService:
         values = {"global_step": self.global_step, "total_timesteps":
                   self.config.total_timesteps, "sps": sps, "mean_return": self.mean_return(),
                   "updates": self.learner.updates, "param_version_lag":
-                  self.param_version_lag(), "actors": len(self.actor_versions)}
+                  self.param_version_lag(), "actors": len(self.actors_heard)}
         self.stats_publisher.put(encode(Stats(
             role="learner", ident="0", values=finite_values(values),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
@@ -304,7 +304,7 @@ class LearnerService:
         self.lag_sum, self.lag_count = 0.0, 0
         say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
-                  f"actors {len(self.actor_versions)}")
+                  f"actors {len(self.actors_heard)}")
 
     def finish(self, finished: bool) -> None:
         path = save_training(self.run_dir, self.learner, self.config, self.global_step, "final")
