@@ -14,7 +14,8 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = {"replay": "services.replay", "learner": "services.learner",
-           "actor": "services.actor", "cluster": "services.cluster"}
+           "actor": "services.actor", "cluster": "services.cluster",
+           "router": "services.router", "link": "services.link"}
 
 
 def free_port() -> int:
