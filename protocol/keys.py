@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: fragments and acks carry the actor's incarnation
 
 RUN_ID_RULE = r"[A-Za-z0-9_.-]{1,64}"
 NAME_RULE = r"[A-Za-z0-9_.-]+"  # role and ident chunks: no '/', '*', '$', '?', '#' (Zenoh syntax)

@@ -88,6 +88,9 @@ class Trajectory:
     trunc_obs: np.ndarray = wire(Array(F4, "K obs_dim"))  # their real final observations
     disc_returns: np.ndarray = wire(Array(F4, "T"))
     td_abs: np.ndarray = wire(Array(F4, "T", ge=0.0))  # |δ_t|: the initial priority
+    # Which run of the actor process sent it: a restarted actor counts seq from 0 again, so
+    # de-duplication is by (actor_id, incarnation, seq).
+    incarnation: int = wire(Int(ge=0), default=0)
 
     @property
     def num_steps(self) -> int:
@@ -112,6 +115,7 @@ class Ack:
     actor_id: int = wire(Int(le=MAX_ACTOR_ID))
     seqs: np.ndarray = wire(Array(I8, "n", ge=0))
     ingested: int = wire(Int())  # fragments from this actor the replay has ingested in total
+    incarnation: int = wire(Int(ge=0), default=0)  # the actor process run these seqs belong to
 
 
 @dataclass(eq=False)

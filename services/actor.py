@@ -10,6 +10,7 @@ actor never stalls on the network.
 
 from __future__ import annotations
 
+import secrets
 import sys
 import threading
 import time
@@ -71,6 +72,12 @@ class Outbox:
         with self._cond:
             return self._cond.wait_for(lambda: len(self._items) < self.capacity, timeout_s)
 
+    def make_all_due(self) -> None:
+        """Resend everything at the next check (the replay server came back)."""
+        with self._cond:
+            for item in self._items.values():
+                item[1] = -1e18
+
     def due(self, now: float, after_s: float) -> list[tuple[int, bytes]]:
         """Entries unacknowledged for `after_s`; their clocks restart."""
         with self._cond:
@@ -95,6 +102,9 @@ class ActorService:
             envs, self.model, spec.fragment_len, spec.gamma, spec.action_low, spec.action_high,
             seed=config.seed + 1000 * config.actor_id, actor_id=config.actor_id)
         self.outbox = Outbox(config.outbox_fragments)
+        # A new number per process run: the replay de-duplicates by (actor, incarnation, seq),
+        # so a restarted actor, whose seqs start at 0 again, is not taken for a resender.
+        self.incarnation = secrets.randbits(62)
         self.sent = self.resent = 0
         self.latest_params: bytes | None = None
         self.params_lock = threading.Lock()
@@ -112,6 +122,10 @@ class ActorService:
             s.declare_subscriber(k.control, self._on_control),
         ]
         self.token = s.liveliness().declare_token(k.alive("actor", config.actor_id))
+        # The replay server (re)appearing — a restart, or this actor reconnecting after a
+        # partition — means acks may have been lost: resend the outbox at once.
+        self.replay_watch = s.liveliness().declare_subscriber(
+            k.alive("replay", 0), self._on_replay_alive, history=True)
 
     # -- callbacks (Zenoh threads): store, never block
     def _on_params(self, sample) -> None:
@@ -124,7 +138,12 @@ class ActorService:
         except DecodeError as exc:
             self.log_bad(exc.kind, f"dropped a bad ack ({exc})")
             return
-        self.outbox.ack(ack.seqs.tolist())
+        if ack.incarnation == self.incarnation:  # not acks meant for an earlier run of ours
+            self.outbox.ack(ack.seqs.tolist())
+
+    def _on_replay_alive(self, sample) -> None:
+        if sample.kind == zenoh.SampleKind.PUT:
+            self.outbox.make_all_due()
 
     def _on_control(self, sample) -> None:
         try:
@@ -216,7 +235,7 @@ class ActorService:
             # back-pressure: wait for acks, resend the lost, keep the parameters fresh
             self.resend_due(time.monotonic())
             self.refresh_params()
-        payload = encode(fragment_to_message(fragment, self.model.reward_scale()),
+        payload = encode(fragment_to_message(fragment, self.model.reward_scale(), self.incarnation),
                          self.config.trajectory_compression)
         self.outbox.add(fragment.seq, payload, time.monotonic())
         self.traj_publisher.put(payload)

@@ -2,17 +2,22 @@
 spec and sample requests; applies priority updates; acknowledges every fragment it ingests.
 
 Zenoh callbacks only decode and enqueue; one loop thread owns the replay, so no locks guard it:
-receive → validate → (dedupe, rate-limit) → insert → ack; sample requests wait in a queue until
-the rate limiter allows them (or `sample_wait_s` passes, then they get a "not ready" reply).
+receive → validate → (dedupe, rate-limit) → insert → log → fsync → ack; sample requests wait in
+a queue until the rate limiter allows them (or `sample_wait_s` passes, then they get a "not
+ready" reply). With `persist` on, a fragment is acknowledged only once it is in the write-ahead
+log on disk, and snapshots of the whole state are written in the background
+(services/persistence.py): a restarted server restores everything it ever acknowledged.
 """
 
 from __future__ import annotations
 
 import queue
+import shutil
 import sys
 import time
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -33,6 +38,7 @@ from protocol import (
 )
 from services.config import ConfigError, resolve, to_toml
 from services.envs import make_vector_env, space_dims
+from services.persistence import ReplayPersistence
 from services.service_config import ReplayServiceConfig
 from services.wire import finite_values, message_to_fragment, run_spec
 from services.zsession import RateLimitedLog, StopSignal, fail, open_for, say
@@ -43,15 +49,60 @@ PROG = "tpdeb-replay"
 _NO_MOMENTS = (0.0, 0.0, 0.0)
 
 
+class SeqWindow:
+    """The sequence numbers seen from one actor incarnation, in O(fragments in flight) memory:
+    every seq below `low`, plus the set `above` (actors send in order, so gaps close fast)."""
+
+    def __init__(self, low: int = 0, above=()):
+        self.low, self.above = low, set(above)
+
+    def __contains__(self, seq: int) -> bool:
+        return seq < self.low or seq in self.above
+
+    def add(self, seq: int) -> None:
+        self.above.add(seq)
+        while self.low in self.above:
+            self.above.remove(self.low)
+            self.low += 1
+
+    def state(self) -> tuple[int, list[int]]:
+        return self.low, sorted(self.above)
+
+
+MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
+
+
 @dataclass
 class ActorLedger:
-    """Per-actor delivery accounting; `seen` de-duplicates resent fragments."""
+    """Per-actor delivery accounting. `windows` (by incarnation) holds what was ingested, so a
+    resent fragment is acknowledged again but stored once; `pending` what was received but not
+    yet ingested (acknowledged only once it is)."""
 
     ingested: int = 0
     duplicates: int = 0
     dropped_busy: int = 0
-    seen: set = field(default_factory=set)
-    unacked: list = field(default_factory=list)
+    windows: dict = field(default_factory=dict)  # incarnation -> SeqWindow, oldest first
+    pending: set = field(default_factory=set)  # (incarnation, seq)
+    unacked: dict = field(default_factory=lambda: defaultdict(list))  # incarnation -> [seq]
+
+    def window(self, incarnation: int) -> SeqWindow:
+        if incarnation not in self.windows:
+            self.windows[incarnation] = SeqWindow()
+            while len(self.windows) > MAX_INCARNATIONS:
+                del self.windows[next(iter(self.windows))]
+        return self.windows[incarnation]
+
+    def state(self) -> dict:
+        return {"ingested": self.ingested, "duplicates": self.duplicates,
+                "dropped_busy": self.dropped_busy,
+                "windows": {inc: w.state() for inc, w in self.windows.items()}}
+
+    @classmethod
+    def from_state(cls, state: dict) -> ActorLedger:
+        ledger = cls(state["ingested"], state["duplicates"], state["dropped_busy"])
+        ledger.windows = {inc: SeqWindow(low, above)
+                          for inc, (low, above) in state["windows"].items()}
+        return ledger
 
 
 class ReplayServer:
@@ -63,7 +114,7 @@ class ReplayServer:
             alpha=config.alpha, seed=config.seed, priority_mode=config.priority_mode)
         self.limiter = config.rate_limiter()
         self.inbox: queue.Queue = queue.Queue()
-        self.pending: deque[Trajectory] = deque()
+        self.pending: deque[tuple[Trajectory, bytes]] = deque()
         self.waiting: deque[tuple[float, object, SampleRequest]] = deque()
         self.ledgers: dict[int, ActorLedger] = defaultdict(ActorLedger)
         self.bad: dict[str, int] = defaultdict(int)
@@ -73,6 +124,9 @@ class ReplayServer:
         self.priority_updates = 0
         self.obs_moments = self.ret_moments = _NO_MOMENTS
         self.spec_bytes = encode(spec)
+        self.persistence: ReplayPersistence | None = None
+        self.restored = ""  # what restore() found, for the start-up line
+        self.last_snapshot = time.monotonic()
         self._declare()
 
     def _declare(self) -> None:
@@ -107,11 +161,16 @@ class ReplayServer:
                 pass
             self._ingest_pending()
             self._serve_waiting()
+            if self.persistence is not None:
+                self.persistence.sync()  # acks below promise that the fragments are on disk
             self._flush_acks()
             now = time.monotonic()
             if now - last_stats >= self.config.stats_interval_s:
                 self.publish_stats()
                 last_stats = now
+            interval = self.config.snapshot_interval_s
+            if self.persistence is not None and interval and now - self.last_snapshot >= interval:
+                self.snapshot()
 
     def _handle(self, kind: str, item) -> None:
         if kind == "sample":
@@ -122,7 +181,8 @@ class ReplayServer:
         limit = self.config.max_message_bytes
         try:
             if kind == "traj":
-                self._receive_fragment(decode(payload, Trajectory, self.spec, limit), sender)
+                self._receive_fragment(decode(payload, Trajectory, self.spec, limit), payload,
+                                       sender)
             elif kind == "prio":
                 self._apply_priorities(decode(payload, PriorityUpdate, self.spec, limit))
             elif kind == "control" and decode(payload, Control, max_bytes=limit).command == "stop":
@@ -134,26 +194,35 @@ class ReplayServer:
         self.bad[kind] += 1
         self.log_bad(kind, f"dropped a bad message from {sender} ({kind}): {detail}")
 
-    def _receive_fragment(self, message: Trajectory, sender: str) -> None:
+    def _receive_fragment(self, message: Trajectory, payload: bytes, sender: str) -> None:
         if self.keys.actor_id_of(sender) != message.actor_id:
             self.reject("sender", sender, f"carries actor_id {message.actor_id}")
             return
         ledger = self.ledgers[message.actor_id]
-        if message.seq in ledger.seen:
+        ident = (message.incarnation, message.seq)
+        if message.seq in ledger.window(message.incarnation):
             ledger.duplicates += 1
-            ledger.unacked.append(message.seq)  # its first ack may have been lost: ack again
+            # its first ack may have been lost: ack again (it is on disk already)
+            ledger.unacked[message.incarnation].append(message.seq)
+            return
+        if ident in ledger.pending:
+            ledger.duplicates += 1  # acknowledged once it is ingested
             return
         if len(self.pending) >= self.config.max_pending_fragments:
             ledger.dropped_busy += 1  # not acknowledged: the actor resends it later
             return
-        ledger.seen.add(message.seq)
-        self.pending.append(message)
+        ledger.pending.add(ident)
+        self.pending.append((message, payload))
 
     def _ingest_pending(self) -> None:
         while self.pending and self.limiter.can_insert(self.spec.fragment_len):
-            self._insert(self.pending.popleft())
+            message, payload = self.pending.popleft()
+            self.ledgers[message.actor_id].pending.discard((message.incarnation, message.seq))
+            self._insert(message)
+            if self.persistence is not None:
+                self.persistence.log(payload)
 
-    def _insert(self, message: Trajectory) -> None:
+    def _insert(self, message: Trajectory, replaying: bool = False) -> None:
         fragment = message_to_fragment(message)
         priority = fragment.initial_priority(self.spec.priority_mode, self.spec.priority_kappa,
                                              self.spec.gamma, message.reward_scale)
@@ -161,12 +230,15 @@ class ReplayServer:
         self.replay.insert(message, priority, fragment.num_steps)
         self.limiter.on_insert(fragment.num_steps)
         self.inserted_steps += fragment.num_steps
+        ledger = self.ledgers[message.actor_id]
+        ledger.ingested += 1
+        ledger.window(message.incarnation).add(message.seq)
+        if replaying:
+            return  # restored from the log: its moments were shipped, its ack was sent
         # Normaliser moments: every ingested step counted exactly once, shipped to the learner.
         self.obs_moments = merge_moments(self.obs_moments, batch_moments(fragment.obs[:-1]))
         self.ret_moments = merge_moments(self.ret_moments, batch_moments(fragment.disc_returns))
-        ledger = self.ledgers[message.actor_id]
-        ledger.ingested += 1
-        ledger.unacked.append(message.seq)
+        ledger.unacked[message.incarnation].append(message.seq)
 
     def _flush_acks(self) -> None:
         for actor_id, ledger in self.ledgers.items():
@@ -178,9 +250,85 @@ class ReplayServer:
                 publisher = self.session.declare_publisher(
                     self.keys.ack(actor_id), priority=zenoh.Priority.DATA_HIGH, express=True)
                 self.ack_publishers[actor_id] = publisher
-            publisher.put(encode(Ack(actor_id=actor_id, seqs=np.array(ledger.unacked, np.int64),
-                                     ingested=ledger.ingested)))
-            ledger.unacked = []
+            for incarnation, seqs in ledger.unacked.items():
+                publisher.put(encode(Ack(actor_id=actor_id, seqs=np.array(seqs, np.int64),
+                                         ingested=ledger.ingested, incarnation=incarnation)))
+            ledger.unacked.clear()
+
+    # -- durability
+    def enable_persistence(self, directory: Path) -> None:
+        """Restore (restore=auto) what `directory` holds, then log and snapshot there."""
+        if self.config.restore == "never" and directory.exists() and any(directory.iterdir()):
+            aside = directory.with_name(f"{directory.name}.set-aside-{int(time.time())}")
+            shutil.move(directory, aside)
+            say(PROG, f"restore=never: earlier replay state moved to {aside}")
+        persistence = ReplayPersistence(directory, self.config.keep_snapshots)
+        started = time.perf_counter()
+        state, records = persistence.load(self._decode_stored)
+        if state is not None:
+            self._load_state(state)
+        replayed = 0
+        for payload in records:
+            self._insert(self._decode_stored(payload), replaying=True)
+            replayed += 1
+        if persistence.skipped:
+            say(PROG, f"skipped an unreadable snapshot ({persistence.skipped})")
+        self.persistence = persistence  # only now: a failed restore must not snapshot over it
+        if state is not None or replayed:
+            self.restored = (f"restored {len(self.replay):,} fragments ({self.inserted_steps:,} "
+                             f"steps: snapshot + {replayed} logged) from {directory} in "
+                             f"{time.perf_counter() - started:.1f} s")
+
+    def _decode_stored(self, payload: bytes) -> Trajectory:
+        return decode(payload, Trajectory, self.spec, self.config.max_message_bytes)
+
+    def snapshot(self, wait: bool = False) -> bool:
+        """Capture the state now (a shallow copy, timed) and write it in the background."""
+        if self.persistence.writing and not wait:
+            return False  # the previous one is still being written: try again next interval
+        started = time.perf_counter()
+        state = self.replay.state_dict()
+        items = state.pop("slot_items")
+        state["slot_items"] = list(range(len(items)))
+        uniform = state.pop("uniform")
+        state["uniform"] = [(key, len(items) + i, steps) for i, (key, _, steps)
+                            in enumerate(uniform)]
+        items.extend(item for _, item, _ in uniform)
+        saved = {"format": 1, "env_id": self.spec.env_id, "obs_dim": self.spec.obs_dim,
+                 "act_dim": self.spec.act_dim, "replay": state,
+                 "limiter": self.limiter.state_dict(), "inserted_steps": self.inserted_steps,
+                 "samples_served": self.samples_served,
+                 "priority_updates": self.priority_updates,
+                 "ledgers": {a: ledger.state() for a, ledger in self.ledgers.items()}}
+        if self.persistence.error is not None:
+            say(PROG, f"a snapshot failed ({self.persistence.error}); the log still holds "
+                      "every fragment")
+            self.persistence.error = None
+        started_write = self.persistence.snapshot(saved, items, encode, wait=wait)
+        self.persistence.last_capture_ms = 1e3 * (time.perf_counter() - started)
+        self.last_snapshot = time.monotonic()
+        return started_write
+
+    def _load_state(self, saved: dict) -> None:
+        for name in ("env_id", "obs_dim", "act_dim"):
+            if saved[name] != getattr(self.spec, name):
+                raise ConfigError(f"the replay state in the run dir is for {name}="
+                                  f"{saved[name]!r}, this run has {getattr(self.spec, name)!r}:"
+                                  " use another --run-dir, or --restore never")
+        state, items = saved["replay"], saved["items"]
+        state["slot_items"] = [items[i] for i in state["slot_items"]]
+        state["uniform"] = [(key, items[i], steps) for key, i, steps in state["uniform"]]
+        try:
+            self.replay.load_state_dict(state)
+        except ValueError as exc:
+            raise ConfigError(f"cannot restore the replay state: {exc}; use the same "
+                              "capacities, or --restore never") from None
+        self.limiter.load_state_dict(saved["limiter"])
+        self.inserted_steps = saved["inserted_steps"]
+        self.samples_served = saved["samples_served"]
+        self.priority_updates = saved["priority_updates"]
+        for actor_id, ledger in saved["ledgers"].items():
+            self.ledgers[actor_id] = ActorLedger.from_state(ledger)
 
     # -- sampling
     def _take_sample_request(self, query) -> None:
@@ -264,6 +412,12 @@ class ReplayServer:
                   "samples_per_insert": limiter.get("samples_per_insert_achieved", 0.0),
                   "bad_messages": sum(self.bad.values())}
         values.update({f"bad/{kind}": n for kind, n in self.bad.items()})
+        if self.persistence is not None:
+            p = self.persistence
+            values.update({"snapshots_written": p.snapshots_written,
+                           "snapshot_capture_ms": p.last_capture_ms,
+                           "snapshot_write_s": p.last_snapshot_s,
+                           "log_sync_ms": 1e3 * p.sync_s_total / max(p.syncs, 1)})
         for actor_id, ledger in self.ledgers.items():
             values[f"actor{actor_id}/ingested"] = ledger.ingested
             values[f"actor{actor_id}/duplicates"] = ledger.duplicates
@@ -279,6 +433,11 @@ class ReplayServer:
         for query in (q for _, q, _ in self.waiting):
             query.drop()
         self.waiting.clear()
+        if self.persistence is not None:
+            self.persistence.sync()
+            self._flush_acks()
+            self.snapshot(wait=True)  # a restart then replays no log at all
+            self.persistence.close()
         self.token.undeclare()
 
 
@@ -289,17 +448,27 @@ def main(argv: list[str] | None = None) -> int:
         envs = make_vector_env(config.env_id, 1)
         spec = run_spec(config, *space_dims(envs))
         envs.close()
-        session = open_for(config, "router")
+        # With --listen it is the run's router; with only --connect, a client of one.
+        session = open_for(config, "router" if config.listen else "client")
     except ConfigError as exc:
         return fail(PROG, exc)
     stop = StopSignal().install()
     server = ReplayServer(config, spec, session, stop)
-    if config.run_dir:
-        server_dir = config.default_run_dir()
+    server_dir = config.default_run_dir()
+    try:
         server_dir.mkdir(parents=True, exist_ok=True)
         (server_dir / "replay.toml").write_text(to_toml(config))
+        if config.persist:
+            server.enable_persistence(server_dir / "replay")
+    except (ConfigError, OSError, DecodeError) as exc:
+        server.close()
+        session.close()
+        return fail(PROG, exc)
+    where = ", ".join(config.listen) or f"the router at {', '.join(config.connect)}"
     say(PROG, f"run {config.run_id}: serving {spec.env_id} (obs {spec.obs_dim}, act "
-              f"{spec.act_dim}, T {spec.fragment_len}) on {', '.join(config.listen)}")
+              f"{spec.act_dim}, T {spec.fragment_len}) on {where}")
+    if server.restored:
+        say(PROG, server.restored)
     try:
         server.run()
     finally:

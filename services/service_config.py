@@ -52,11 +52,28 @@ class ReplayServiceConfig(ServiceConfig):
     unacknowledged (their actors resend them)"""
     sample_wait_s: float = 1.0
     """how long a sample request may wait for the rate limiter before a 'not ready' reply"""
+    persist: bool = True
+    """keep a write-ahead log and snapshots in {run_dir}/replay, and acknowledge a fragment only
+    once it is on disk, so acknowledged fragments survive a crash; off: nothing survives"""
+    snapshot_interval_s: float = 60.0
+    """seconds between background snapshots of the whole replay (0: only at shutdown); they
+    bound how much log a restart replays"""
+    keep_snapshots: int = 2
+    """complete snapshots kept (the newest that reads back is restored)"""
+    restore: str = "auto"
+    """auto: start from the newest complete snapshot in {run_dir}/replay plus the log after it
+    (empty when there is none); never: start empty, moving earlier state aside"""
 
     def __post_init__(self):
         super().__post_init__()
         if not self.listen and not self.connect:
             raise ConfigError("the replay server needs --listen (or --connect to a router)")
+        if self.restore not in ("auto", "never"):
+            raise ConfigError(f"restore={self.restore!r}: expected auto or never")
+        if self.snapshot_interval_s < 0:
+            raise ConfigError(f"snapshot_interval_s={self.snapshot_interval_s}: must be ≥ 0")
+        if self.keep_snapshots < 1:
+            raise ConfigError(f"keep_snapshots={self.keep_snapshots}: must be ≥ 1")
 
 
 @dataclass

@@ -42,8 +42,9 @@ def model_for(spec: RunSpec) -> ActorCritic:
                        spec.obs_clip)
 
 
-def fragment_to_message(fragment: Fragment, reward_scale: float) -> Trajectory:
-    return Trajectory(reward_scale=float(reward_scale),
+def fragment_to_message(fragment: Fragment, reward_scale: float,
+                        incarnation: int = 0) -> Trajectory:
+    return Trajectory(reward_scale=float(reward_scale), incarnation=int(incarnation),
                       **{name: getattr(fragment, name) for name in _FRAGMENT_FIELDS})
 
 

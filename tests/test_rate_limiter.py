@@ -127,3 +127,14 @@ def test_stats_start_at_zero():
     assert stats["inserted_steps"] == 0
     assert stats["sampled_steps"] == 0
     assert stats["samples_per_insert_achieved"] == 0.0
+
+
+def test_state_round_trip_and_bad_state():
+    a = RateLimiter(2.0, 100, 1000, insert_steps=10, sample_steps=50)
+    a.on_insert(10)
+    a.on_insert(10)
+    b = RateLimiter(2.0, 100, 1000, insert_steps=10, sample_steps=50)
+    b.load_state_dict(a.state_dict())
+    assert b.stats() == a.stats()
+    with pytest.raises(ValueError, match="sampled_steps"):
+        b.load_state_dict({"inserted_steps": 0, "sampled_steps": -1})

@@ -156,6 +156,17 @@ class RateLimiter:
         """Record a sample (the caller checked `can_sample`, or is forcing it)."""
         self._sampled_steps += _as_steps("num_steps", num_steps)
 
+    def state_dict(self) -> dict[str, int]:
+        return {"inserted_steps": self._inserted_steps, "sampled_steps": self._sampled_steps}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        for name in ("inserted_steps", "sampled_steps"):
+            value = state[name]
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name} must be an integer >= 0, got {value!r}")
+        self._inserted_steps = state["inserted_steps"]
+        self._sampled_steps = state["sampled_steps"]
+
     def stats(self) -> dict[str, float | int]:
         achieved = self._sampled_steps / self._inserted_steps if self._inserted_steps else 0.0
         return {

@@ -437,6 +437,74 @@ class DualReplay:
             "priority_mean": priority_mean,
         }
 
+    # ----------------------------------------------------------------------------- state
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to rebuild this buffer exactly — the items, their tree values, the
+        counters and the sampler's RNG state — as plain Python and numpy values (the items stay
+        as they are: the caller decides how to store them). Arrays are copies and the lists
+        are new, so the result stays valid while the buffer goes on changing."""
+        live = np.flatnonzero(self._slot_keys >= 0)
+        return {
+            "config": {"prioritized_capacity": self._capacity,
+                       "uniform_capacity_steps": self._uniform_capacity_steps,
+                       "priority_mode": self._mode, "alpha": self._alpha,
+                       "min_priority": self._min_priority},
+            "slots": live.copy(),
+            "slot_keys": self._slot_keys[live].copy(),
+            "slot_steps": self._slot_steps[live].copy(),
+            "slot_mass": np.asarray(self._mass.get(live), dtype=np.float64),
+            "slot_rank": np.asarray(self._rank.get(live), dtype=np.float64),
+            "step_masses": [self._step_masses[s] for s in live.tolist()],
+            "slot_items": [self._items[s] for s in live.tolist()],
+            "uniform": [tuple(e) for e in self._uniform[self._uniform_head:]],
+            "counters": {"next_key": self._next_key, "inserted": self._inserted,
+                         "displaced": self._displaced, "evicted": self._evicted,
+                         "sampled": self._sampled, "sampled_steps": self._sampled_steps},
+            "rng": self._rng.bit_generator.state,
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore what `state_dict` returned into this (empty) buffer, built with the same
+        capacities and priority mode; a mismatch is refused with both values."""
+        if self._next_key:
+            raise ValueError("load_state_dict needs an empty buffer")
+        config = state["config"]
+        for name, mine in (("prioritized_capacity", self._capacity),
+                           ("uniform_capacity_steps", self._uniform_capacity_steps),
+                           ("priority_mode", self._mode)):
+            if config[name] != mine:
+                raise ValueError(f"saved buffer has {name}={config[name]!r}, this one {mine!r}")
+        slots = np.asarray(state["slots"], dtype=np.int64)
+        keys = np.asarray(state["slot_keys"], dtype=np.int64)
+        steps = np.asarray(state["slot_steps"], dtype=np.int64)
+        for i, slot in enumerate(slots.tolist()):
+            self._items[slot] = state["slot_items"][i]
+            self._step_masses[slot] = state["step_masses"][i]
+            self._slot_of_key[int(keys[i])] = slot
+        self._slot_keys[slots] = keys
+        self._slot_steps[slots] = steps
+        self._prioritized_steps = int(steps.sum())
+        taken = set(slots.tolist())
+        self._free_slots = [s for s in range(self._capacity - 1, -1, -1) if s not in taken]
+        if len(slots):
+            self._mass.set_many(slots, np.asarray(state["slot_mass"], dtype=np.float64))
+            self._rank.set_many(slots, np.asarray(state["slot_rank"], dtype=np.float64))
+            if self._min_step_mass is not None:
+                self._min_step_mass.set_many(
+                    slots, np.array([m.min() for m in state["step_masses"]], dtype=np.float64))
+        self._uniform = [_UniformEntry(int(k), item, int(n)) for k, item, n in state["uniform"]]
+        self._uniform_head = 0
+        self._uniform_steps = sum(e.num_steps for e in self._uniform)
+        counters = state["counters"]
+        self._next_key = int(counters["next_key"])
+        self._inserted = int(counters["inserted"])
+        self._displaced = int(counters["displaced"])
+        self._evicted = int(counters["evicted"])
+        self._sampled = int(counters["sampled"])
+        self._sampled_steps = int(counters["sampled_steps"])
+        self._rng.bit_generator.state = state["rng"]
+
     def _prioritized_keys(self) -> set[int]:
         """Keys now in B_p (for tests and debugging)."""
         return set(self._slot_of_key)

@@ -1,0 +1,257 @@
+"""The replay server's durability: a write-ahead log of ingested fragments plus periodic snapshots.
+
+Every ingested fragment's wire bytes are appended to the log and the log is fsynced before the
+fragment is acknowledged, so an acknowledged fragment survives a `kill -9`. A snapshot holds the
+whole replay state (both buffers, priorities, the rate limiter, the de-duplication ledgers); the
+log is rotated at the moment the state is captured, so restore = newest complete snapshot +
+every log segment from that point on. Old segments and snapshots are deleted once a newer
+snapshot is complete.
+
+A snapshot is written into a temporary directory and becomes valid only when its `COMPLETE`
+marker (sizes and CRCs of its files) is in place and the directory renamed; anything else is
+ignored and cleaned up. Capturing the state is a shallow copy on the server's loop thread; the
+expensive part (encoding every item, writing, fsync) runs on a background thread, so inserts and
+samples go on while it is written.
+
+Record format (log segments and a snapshot's items file alike): u32 length, u32 CRC-32, bytes.
+A torn record at the end of the last segment (a crash mid-write) ends the log there.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import shutil
+import struct
+import threading
+import time
+import zlib
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+_HEADER = struct.Struct("<II")
+_SEGMENT = "wal-{:08d}.log"
+_SNAPSHOT = "snapshot-{:08d}"
+MARKER = "COMPLETE"
+
+
+class CorruptRecord(Exception):
+    pass
+
+
+def append_record(f, payload: bytes) -> None:
+    f.write(_HEADER.pack(len(payload), zlib.crc32(payload)))
+    f.write(payload)
+
+
+def read_records(path: Path, strict: bool) -> Iterator[bytes]:
+    """Records of one file in order. A torn or corrupt record ends a log (`strict=False`: a crash
+    can only tear the tail); in a snapshot file, which was complete, it is an error."""
+    with path.open("rb") as f:
+        while True:
+            header = f.read(_HEADER.size)
+            if not header:
+                return
+            if len(header) < _HEADER.size:
+                if strict:
+                    raise CorruptRecord(f"{path}: truncated record header")
+                return
+            length, crc = _HEADER.unpack(header)
+            payload = f.read(length)
+            if len(payload) < length or zlib.crc32(payload) != crc:
+                if strict:
+                    raise CorruptRecord(f"{path}: corrupt record")
+                return
+            yield payload
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _file_crc(path: Path) -> int:
+    crc = 0
+    with path.open("rb") as f:
+        while chunk := f.read(1 << 20):
+            crc = zlib.crc32(chunk, crc)
+    return crc
+
+
+class ReplayPersistence:
+    """Write-ahead log + snapshots in one directory (see the module docstring)."""
+
+    def __init__(self, directory: str | Path, keep_snapshots: int = 2):
+        self.dir = Path(directory)
+        self.dir.mkdir(parents=True, exist_ok=True)
+        self.keep_snapshots = keep_snapshots
+        self._wal = None
+        self._segment = -1
+        self._dirty = False
+        self._writer: threading.Thread | None = None
+        self.error: BaseException | None = None
+        self.skipped = ""  # why the newest snapshot was passed over at load, if it was
+        self.last_snapshot_s = 0.0  # how long the last background write took
+        self.last_capture_ms = 0.0  # how long the loop spent capturing the state
+        self.snapshots_written = 0
+        self.logged_records = 0
+        self.sync_s_total = 0.0
+        self.syncs = 0
+
+    # -- restore
+    def complete_snapshots(self) -> list[Path]:
+        """Complete snapshot directories, oldest first; leftovers of interrupted writes go."""
+        found = []
+        for path in sorted(self.dir.glob("snapshot-*")):
+            if path.is_dir() and (path / MARKER).is_file():
+                found.append(path)
+        for path in self.dir.glob(".snapshot-*"):
+            shutil.rmtree(path, ignore_errors=True)
+        return found
+
+    def load(self, decode_item: Callable[[bytes], object]) -> tuple[dict | None, Iterator[bytes]]:
+        """(the newest complete snapshot's state or None, the log records written after it).
+        A snapshot whose files fail their marker's sizes/CRCs is skipped for the one before."""
+        state, first_segment = None, 0
+        for path in reversed(self.complete_snapshots()):
+            try:
+                state, first_segment = self._read_snapshot(path, decode_item)
+                break
+            except Exception as exc:  # noqa: BLE001 - any unreadable snapshot: use the one before
+                self.skipped = f"{path.name}: {exc}"
+        segments = [p for p in self._segments() if self._index(p) >= first_segment]
+        self._segment = max([self._index(p) for p in self._segments()] + [first_segment - 1])
+
+        def records() -> Iterator[bytes]:
+            for path in segments:
+                yield from read_records(path, strict=False)
+
+        return state, records()
+
+    def _read_snapshot(self, path: Path, decode_item) -> tuple[dict, int]:
+        marker = json.loads((path / MARKER).read_text())
+        for name, expect in marker["files"].items():
+            file = path / name
+            if file.stat().st_size != expect["bytes"] or _file_crc(file) != expect["crc32"]:
+                raise CorruptRecord(f"{name} does not match its marker")
+        with (path / "state.pkl").open("rb") as f:
+            state = pickle.load(f)
+        items = [decode_item(r) for r in read_records(path / "items.bin", strict=True)]
+        state["items"] = items
+        return state, int(marker["wal_segment"])
+
+    # -- the log
+    def _segments(self) -> list[Path]:
+        return sorted(self.dir.glob("wal-*.log"))
+
+    @staticmethod
+    def _index(path: Path) -> int:
+        return int(path.stem.split("-")[1])
+
+    def _open_segment(self) -> None:
+        if self._wal is not None:
+            self.sync()
+            self._wal.close()
+        self._segment += 1
+        self._wal = (self.dir / _SEGMENT.format(self._segment)).open("ab")
+        _fsync_dir(self.dir)
+
+    def log(self, payload: bytes) -> None:
+        if self._wal is None:
+            self._open_segment()
+        append_record(self._wal, payload)
+        self._dirty = True
+        self.logged_records += 1
+
+    def sync(self) -> None:
+        """Make every logged record durable (one fsync for all of them)."""
+        if self._dirty:
+            started = time.perf_counter()
+            self._wal.flush()
+            os.fsync(self._wal.fileno())
+            self._dirty = False
+            self.sync_s_total += time.perf_counter() - started
+            self.syncs += 1
+
+    # -- snapshots
+    @property
+    def writing(self) -> bool:
+        return self._writer is not None and self._writer.is_alive()
+
+    def snapshot(self, state: dict, items: list, encode_item: Callable[[object], bytes],
+                 wait: bool = False) -> bool:
+        """Start writing `state` (items referenced by index into `items`) in the background; the
+        log rotates now, so the snapshot covers exactly what was logged before this call.
+        Returns False when a previous snapshot is still being written (nothing is started)."""
+        if self.writing:
+            if not wait:
+                return False
+            self._writer.join()
+        self._open_segment()
+        index = self._segment  # the first segment this snapshot does not cover
+        self._writer = threading.Thread(
+            target=self._write, args=(index, state, items, encode_item), daemon=True,
+            name="snapshot")
+        self._writer.start()
+        if wait:
+            self._writer.join()
+        return True
+
+    def _write(self, index: int, state: dict, items: list, encode_item) -> None:
+        started = time.perf_counter()
+        tmp = self.dir / f".{_SNAPSHOT.format(index)}.tmp"
+        final = self.dir / _SNAPSHOT.format(index)
+        try:
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir()
+            files = {}
+            with (tmp / "items.bin").open("wb") as f:
+                for item in items:
+                    append_record(f, encode_item(item))
+                f.flush()
+                os.fsync(f.fileno())
+            with (tmp / "state.pkl").open("wb") as f:
+                pickle.dump(state, f, protocol=pickle.HIGHEST_PROTOCOL)
+                f.flush()
+                os.fsync(f.fileno())
+            for name in ("items.bin", "state.pkl"):
+                files[name] = {"bytes": (tmp / name).stat().st_size,
+                               "crc32": _file_crc(tmp / name)}
+            marker = {"wal_segment": index, "items": len(items), "files": files,
+                      "written_unix_s": time.time()}
+            (tmp / MARKER).write_text(json.dumps(marker, indent=1))
+            with (tmp / MARKER).open("rb") as f:
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+            _fsync_dir(self.dir)
+            self._prune()
+            self.snapshots_written += 1
+            self.last_snapshot_s = time.perf_counter() - started
+        except BaseException as exc:  # reported by the server; the log still holds everything
+            self.error = exc
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    def _prune(self) -> None:
+        """Drop snapshots beyond `keep_snapshots` and log segments every kept snapshot covers."""
+        snapshots = self.complete_snapshots()
+        for path in snapshots[:-self.keep_snapshots]:
+            shutil.rmtree(path, ignore_errors=True)
+        kept = snapshots[-self.keep_snapshots:]
+        if len(kept) < self.keep_snapshots:
+            return  # until there are spares, the log is the fallback for a damaged snapshot
+        oldest_needed = min(self._index(p) for p in kept)
+        for path in self._segments():
+            if self._index(path) < oldest_needed:
+                path.unlink(missing_ok=True)
+
+    def close(self) -> None:
+        if self._writer is not None:
+            self._writer.join()
+        if self._wal is not None:
+            self.sync()
+            self._wal.close()
+            self._wal = None

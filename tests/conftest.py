@@ -1,0 +1,23 @@
+"""Fixtures shared by the tests that start real service processes."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.procs import Procs, free_port, pids_with
+
+
+@pytest.fixture
+def procs(tmp_path):
+    """Spawns service CLIs; every one is stopped (by pid, with its group) when the test ends,
+    also when it fails, and none may be left running."""
+    p = Procs(tmp_path)
+    yield p
+    p.stop_all()
+    assert not p.leftovers(), "a service outlived its test"
+    assert not pids_with(str(tmp_path)), "a service process outlived its test"
+
+
+@pytest.fixture
+def endpoint():
+    return f"tcp/127.0.0.1:{free_port()}"
