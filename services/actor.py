@@ -188,7 +188,10 @@ class ActorService:
             except zenoh.ZError:
                 return  # the session is closing
             if not got:
-                self.params_wanted.set()  # no newer version in time (or no learner): ask again
+                # No newer version in time, or no learner at all (then the query returns at
+                # once): ask again, but not in a busy loop while the learner restarts.
+                self.stop.wait(0.2)
+                self.params_wanted.set()
 
     def refresh_params(self) -> bool:
         with self.params_lock:

@@ -5,6 +5,18 @@ when an update ends. The loop: take a batch → merge the normaliser moments it 
 `Learner.step` → send new priorities → publish parameters every `params_publish_interval`
 updates. Global steps are the replay's ingested env steps; at `total_timesteps` the learner
 writes its final checkpoint and tells every process of the run to stop.
+
+Checkpoints (services/checkpoint.py): every `checkpoint_interval_s` the loop writes
+`checkpoints/ckpt_{updates}_{global_step}.pt` atomically and keeps the newest
+`keep_checkpoints`. `--resume auto` (the default) continues from the run dir's newest loadable
+checkpoint, so a learner restarted after a crash picks up where its last checkpoint left off.
+
+Parameter versions: the version published is `updates + version_offset`, not the update count
+itself. A restarted learner restores the update count of its last checkpoint, but its
+predecessor may have published later versions before dying, and actors ignore versions older
+than theirs. The offset lifts the first version after a restart above the high-water mark
+(`VersionMark`) that every published version stays under. Fragments carry the version they were
+collected with, so policy lag and sample age are measured in versions as well.
 """
 
 from __future__ import annotations
@@ -14,6 +26,7 @@ import sys
 import threading
 import time
 from collections import deque
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -31,7 +44,17 @@ from protocol import (
     decode,
     encode,
 )
-from services.checkpoint import save_training
+from services.checkpoint import (
+    FINAL,
+    PERIODIC,
+    VersionMark,
+    checkpoint_dir,
+    choose_resume,
+    rotate,
+    save_training,
+    set_aside,
+    spec_problem,
+)
 from services.config import ConfigError, resolve, to_toml
 from services.metrics import MetricsWriter
 from services.serial import hyperparameter_table, seed_everything
@@ -52,18 +75,33 @@ LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")
 
 
 class LearnerService:
-    def __init__(self, config: LearnerServiceConfig, spec: RunSpec, session, stop: StopSignal):
+    def __init__(self, config: LearnerServiceConfig, spec: RunSpec, session, stop: StopSignal,
+                 resume: tuple[Path, dict] | None = None):
+        """`resume`: the checkpoint (path, state) to continue from (see `choose_resume`)."""
         self.config, self.spec, self.session, self.stop = config, spec, session, stop
         self.keys = Keys(config.run_id)
         seed_everything(config.seed)
         self.model = model_for(spec)
         self.learner = Learner(self.model, config.loss_config())
         self.run_dir = config.default_run_dir()
+        self.global_step = 0
+        restored_version = -1
+        if resume is not None:
+            restored_version = self.restore(*resume)
+        elif config.resume == "never":
+            aside = set_aside(self.run_dir)
+            if aside is not None:
+                say(PROG, f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
+        self.versions = VersionMark(checkpoint_dir(self.run_dir))
+        self.version_offset = self.versions.offset(self.learner.updates, restored_version)
+        if resume is not None:
+            say(PROG, f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
+                      f"{self.param_version():,}, {self.global_step:,} env steps")
+        self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.metrics = MetricsWriter(self.run_dir)
         self.log_bad = RateLimitedLog(PROG)
         self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
         self.stats_inbox: queue.Queue = queue.Queue()
-        self.global_step = 0
         self.replay_stats: dict = {}
         self.link_stats: dict = {}
         self.actors_heard: set[str] = set()  # actors whose stats arrived
@@ -98,13 +136,61 @@ class LearnerService:
                                           name=f"fetch-{i}")
                          for i in range(config.requests_in_flight)]
 
+    # -- checkpoints
+    def restore(self, path: Path, state: dict) -> int:
+        """Load a checkpoint's learner state and counters; returns its parameter version."""
+        cfg = self.config
+        problem = spec_problem(state, self.spec)
+        if problem:
+            raise ConfigError(f"checkpoint {path} does not fit this run: {problem}; pass "
+                              "--resume never or another --run-dir")
+        try:
+            self.learner.load_state_dict(state)
+        except (RuntimeError, ValueError, KeyError, TypeError) as exc:
+            reason = str(exc).strip().splitlines()[0][:160] if str(exc).strip() else repr(exc)
+            raise ConfigError(f"checkpoint {path} does not fit this learner's model ({reason}); "
+                              "pass --resume never or another --run-dir") from None
+        # Settings given now win over those stored in the optimiser's state; an adapted KL
+        # coefficient is state and stays.
+        self.learner.set_learning_rate(cfg.learning_rate)
+        for group in self.learner.optimizer.param_groups:
+            group["eps"] = cfg.adam_eps
+        if cfg.kl_target <= 0:
+            self.learner.kl_coef = cfg.kl_coef
+        self.global_step = int(state["global_step"])
+        return int(state["version"])
+
+    def param_version(self) -> int:
+        """The version of the current parameters (see the module docstring)."""
+        return self.learner.updates + self.version_offset
+
+    def save_checkpoint(self, tag: str) -> Path:
+        return save_training(self.run_dir, self.learner, self.config, self.global_step, tag,
+                             self.param_version(), self.spec)
+
+    def periodic_checkpoint(self) -> Path | None:
+        started = time.perf_counter()
+        try:
+            path = self.save_checkpoint(PERIODIC)
+            rotate(checkpoint_dir(self.run_dir), self.config.keep_checkpoints)
+        except OSError as exc:  # a full disk must not end the training; say so and retry later
+            self.log_bad("checkpoint", f"periodic checkpoint not written ({exc}); training "
+                                       "goes on, the next one is tried in "
+                                       f"{self.config.checkpoint_interval_s:g} s")
+            return None
+        self.checkpoint_s += time.perf_counter() - started
+        self.checkpoints_written += 1
+        return path
+
     # -- parameters down
     def publish_params(self) -> None:
         """Answer the actors' waiting parameter queries with the new version (and put it on the
         `params` key for any monitor)."""
-        data = encode(params_message(self.model, self.learner.updates, self.config.params_dtype))
+        version = self.param_version()
+        self.versions.reserve(version)  # on disk before any actor can hold this version
+        data = encode(params_message(self.model, version, self.config.params_dtype))
         with self.params_lock:
-            self.params_bytes, self.params_version = data, self.learner.updates
+            self.params_bytes, self.params_version = data, version
             waiting, self.waiting_queries = self.waiting_queries, []
         for query in waiting:
             self._reply(query, data)
@@ -179,8 +265,9 @@ class LearnerService:
             fetcher.start()
         say(PROG, f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
                   f"steps; run dir {self.run_dir}")
-        start = last_log = last_stats = time.monotonic()
-        last_step = stats_step = 0
+        start = last_log = last_stats = last_checkpoint = time.monotonic()
+        first_step = last_step = stats_step = self.global_step
+        checkpointed_updates = self.learner.updates
         while not self.stop and self.global_step < cfg.total_timesteps:
             waited = time.perf_counter()
             try:
@@ -198,9 +285,15 @@ class LearnerService:
             if now - last_log >= cfg.log_interval_s:
                 self.log_progress((self.global_step - last_step) / (now - last_log))
                 last_log, last_step = now, self.global_step
+            if cfg.checkpoint_interval_s and now - last_checkpoint >= cfg.checkpoint_interval_s:
+                last_checkpoint = now
+                # no update since the last one: it would only repeat it
+                if (self.learner.updates != checkpointed_updates
+                        and self.periodic_checkpoint() is not None):
+                    checkpointed_updates = self.learner.updates
         finished = self.global_step >= cfg.total_timesteps
         elapsed = time.monotonic() - start
-        self.log_progress(self.global_step / max(elapsed, 1e-9))
+        self.log_progress((self.global_step - first_step) / max(elapsed, 1e-9))
         return finished
 
     def train_on(self, batch: SampleReply) -> None:
@@ -213,6 +306,7 @@ class LearnerService:
             progress = min(1.0, self.global_step / cfg.total_timesteps)
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
         fragments = [message_to_fragment(m) for m in batch.fragments]
+        version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
                                    batch.step_index)
@@ -225,11 +319,12 @@ class LearnerService:
             self.publish_params()
         for key, value in result.metrics.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
-        ages = [self.learner.updates - 1 - f.policy_version for f in fragments]
+        ages = [version - f.policy_version for f in fragments]
         self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
             + float(np.mean(ages))
         # Policy lag: how many versions behind the learner a fragment's behaviour policy was
-        # when the learner first trained on it (replay keys grow with insertion order).
+        # when the learner first trained on it (replay keys grow with insertion order). Across
+        # a restart the versions the restarted learner skipped count too.
         fresh = [(key, age) for key, age in zip(batch.keys.tolist(), ages, strict=True)
                  if key not in self.trained_keys]
         for key, age in fresh:
@@ -274,8 +369,9 @@ class LearnerService:
         """What the cluster's display shows (only finite numbers travel)."""
         values = {"global_step": self.global_step, "total_timesteps":
                   self.config.total_timesteps, "sps": sps, "mean_return": self.mean_return(),
-                  "updates": self.learner.updates, "param_version_lag":
-                  self.param_version_lag(), "actors": len(self.actors_heard)}
+                  "updates": self.learner.updates, "param_version": self.param_version(),
+                  "param_version_lag": self.param_version_lag(),
+                  "actors": len(self.actors_heard)}
         self.stats_publisher.put(encode(Stats(
             role="learner", ident="0", values=finite_values(values),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
@@ -283,10 +379,13 @@ class LearnerService:
     def log_progress(self, sps: float) -> None:
         values = {"charts/SPS": sps,
                   "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
-                  "perf/updates": self.learner.updates, "perf/param_version": self.learner.updates}
+                  "perf/updates": self.learner.updates,
+                  "perf/param_version": self.param_version()}
         if self.count:
             values.update({k: v / self.count for k, v in self.sums.items()})
             values["perf/update_ms"] = 1e3 * self.update_s / self.count
+        if self.checkpoints_written:
+            values["perf/checkpoint_ms"] = 1e3 * self.checkpoint_s / self.checkpoints_written
         busy = self.update_s + self.wait_s
         if busy > 0:
             values["perf/batch_wait_fraction"] = self.wait_s / busy
@@ -301,13 +400,14 @@ class LearnerService:
         self.metrics.log(self.global_step, values)
         self.metrics.flush()
         self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0
+        self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.lag_sum, self.lag_count = 0.0, 0
         say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
                   f"actors {len(self.actors_heard)}")
 
     def finish(self, finished: bool) -> None:
-        path = save_training(self.run_dir, self.learner, self.config, self.global_step, "final")
+        path = self.save_checkpoint(FINAL)
         if finished:
             self.control_publisher.put(encode(Control(command="stop", reason="total_timesteps")))
         self.stop.set("finished")
@@ -332,6 +432,9 @@ def main(argv: list[str] | None = None) -> int:
         # The learner shares the machine with actors and the replay server: more intra-op
         # threads than it is given cores makes every update slower, not faster.
         torch.set_num_threads(config.torch_threads)
+        # A bad --resume PATH fails here, before any network wait.
+        resume = choose_resume(config.resume, config.default_run_dir(),
+                               lambda line: say(PROG, line))
         session = open_for(config)
     except ConfigError as exc:
         return fail(PROG, exc)
@@ -342,7 +445,7 @@ def main(argv: list[str] | None = None) -> int:
         if spec.env_id != config.env_id:
             raise ConfigError(f"the replay server trains {spec.env_id!r}, this learner was "
                               f"started with --env-id {config.env_id!r}")
-        service = LearnerService(config, spec, session, stop)
+        service = LearnerService(config, spec, session, stop, resume)
     except ConfigError as exc:
         session.close()
         return fail(PROG, exc)

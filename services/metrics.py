@@ -14,7 +14,10 @@ class MetricsWriter:
     def __init__(self, run_dir: str | Path):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        self._jsonl = open(self.run_dir / "metrics.jsonl", "a")  # noqa: SIM115
+        path = self.run_dir / "metrics.jsonl"
+        _drop_torn_line(path)
+        # Append: a restarted (resumed) process continues the file its predecessor wrote.
+        self._jsonl = open(path, "a")  # noqa: SIM115
         self._events = EventWriter(self.run_dir)
 
     def log(self, global_step: int, values: dict[str, float]) -> None:
@@ -35,6 +38,24 @@ class MetricsWriter:
         self.flush()
         self._jsonl.close()
         self._events.close()
+
+
+def _drop_torn_line(path: Path) -> None:
+    """A process killed mid-write can leave half a line at the end (the buffer flushes in
+    blocks, not lines); cut it so the next process's first line starts on a line of its own."""
+    if not path.is_file():
+        return
+    with open(path, "rb+") as f:
+        size = f.seek(0, 2)
+        if size == 0:
+            return
+        f.seek(size - 1)
+        if f.read(1) == b"\n":
+            return
+        tail = min(size, 1 << 20)
+        f.seek(size - tail)
+        end = f.read(tail).rfind(b"\n")
+        f.truncate(size - tail + end + 1 if end >= 0 else (0 if tail == size else size))
 
 
 def read_metrics(path: str | Path) -> list[dict]:

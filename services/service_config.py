@@ -82,11 +82,26 @@ class LearnerServiceConfig(ServiceConfig):
     """sample requests kept outstanding at the replay server so the learner never waits"""
     request_timeout_s: float = 30.0
     """a sample request unanswered this long is abandoned and asked again"""
+    checkpoint_interval_s: float = 60.0
+    """seconds between periodic checkpoints in {run_dir}/checkpoints (0: only the final one)"""
+    keep_checkpoints: int = 3
+    """periodic checkpoints kept; older ones are deleted once a newer one is in place"""
+    resume: str = "auto"
+    """auto: continue from the run dir's newest loadable checkpoint (a fresh start if there is
+    none) | never: start fresh (earlier checkpoints are moved aside) | PATH: continue from that
+    checkpoint file"""
 
     def __post_init__(self):
         super().__post_init__()
         if self.requests_in_flight < 1:
             raise ConfigError(f"requests_in_flight={self.requests_in_flight}: must be ≥ 1")
+        if self.checkpoint_interval_s < 0:
+            raise ConfigError(f"checkpoint_interval_s={self.checkpoint_interval_s}: must be ≥ 0 "
+                              "(0 turns periodic checkpoints off)")
+        if self.keep_checkpoints < 1:
+            raise ConfigError(f"keep_checkpoints={self.keep_checkpoints}: must be ≥ 1")
+        if not self.resume.strip():
+            raise ConfigError("resume='': use auto, never or the path of a checkpoint")
 
 
 @dataclass
