@@ -105,6 +105,7 @@ class LearnerService:
         self.replay_stats: dict = {}
         self.link_stats: dict = {}
         self.actors_heard: set[str] = set()  # actors whose stats arrived
+        self.actor_stats: dict[str, dict] = {}  # the latest of each (delivery counters)
         self.trained_keys: set[int] = set()
         self.replay_items = config.prioritized_capacity + (
             config.uniform_capacity_steps // config.fragment_len)
@@ -353,6 +354,7 @@ class LearnerService:
                 self.link_stats = stats.values
             elif stats.role == "actor":
                 self.actors_heard.add(stats.ident)
+                self.actor_stats[stats.ident] = stats.values
                 for ret, length in zip(stats.episode_returns.tolist(),
                                        stats.episode_lengths.tolist(), strict=True):
                     self.recent_returns.append(ret)
@@ -393,6 +395,7 @@ class LearnerService:
         values.update({f"replay/{k}": v for k, v in self.replay_stats.items()
                        if isinstance(v, (int, float)) and "/" not in k})
         values.update({f"link/{k}": self.link_stats[k] for k in LINK_TAGS if k in self.link_stats})
+        values.update(self.delivery_totals())
         if self.link_stats and self.global_step:
             for way in ("up", "down"):
                 values[f"link/{way}_bytes_per_env_step"] = \
@@ -405,6 +408,21 @@ class LearnerService:
         say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
                   f"actors {len(self.actors_heard)}")
+
+    def delivery_totals(self) -> dict[str, float]:
+        """Fragments sent / acknowledged / resent by the actors (their current process runs)
+        and ingested / duplicates / dropped while busy at the replay, over all actors."""
+        totals = {}
+        for name in ("sent", "acked", "resent"):
+            if self.actor_stats:
+                totals[f"delivery/{name}"] = sum(v.get(name, 0)
+                                                 for v in self.actor_stats.values())
+        for name in ("ingested", "duplicates", "dropped_busy"):
+            per_actor = [v for k, v in self.replay_stats.items()
+                         if k.startswith("actor") and k.endswith(f"/{name}")]
+            if per_actor:
+                totals[f"delivery/{name}"] = sum(per_actor)
+        return totals
 
     def finish(self, finished: bool) -> None:
         path = self.save_checkpoint(FINAL)

@@ -11,6 +11,7 @@ import time
 import pytest
 
 from protocol import Ack, Keys, Trajectory, decode
+from services.metrics import read_metrics
 from services.persistence import ReplayPersistence
 from services.zsession import open_session
 from tests.test_services import next_stats, watch_stats
@@ -99,6 +100,10 @@ def test_replay_killed_with_sigkill_loses_no_acknowledged_fragment(
     stored = sum(low + len(above) for low, above in ledger["windows"].values())
     assert ledger["ingested"] == stored == state["replay"]["counters"]["inserted"]
     assert recovered is not None
+    # the learner's delivery counters: what the actor sent, what came back acknowledged
+    last = [r for r in read_metrics(run_dir / "metrics.jsonl") if "delivery/sent" in r][-1]
+    assert 0 < last["delivery/acked"] <= last["delivery/sent"]
+    assert last["delivery/ingested"] > 0 and "delivery/duplicates" in last
     print(f"replay kill -9: {len(acked_before)} fragments acknowledged before, all present; "
           f"first ack {recovered - killed_at:.1f} s after the kill; "
           f"{ledger['duplicates']} resends recognised")
