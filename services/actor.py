@@ -293,6 +293,9 @@ def main(argv: list[str] | None = None) -> int:
         service = ActorService(config, spec, envs, session, stop)
         service.run()
     except ConfigError as exc:
+        if stop:  # stopped while waiting for the run: not an error
+            say(PROG, f"actor {config.actor_id} stopped ({stop.reason}) before it started")
+            return 0
         return fail(PROG, exc)
     finally:
         if service is not None:

@@ -466,6 +466,9 @@ def main(argv: list[str] | None = None) -> int:
         service = LearnerService(config, spec, session, stop, resume)
     except ConfigError as exc:
         session.close()
+        if stop:  # stopped while waiting for the replay server: not an error
+            say(PROG, f"stopped ({stop.reason}) before training")
+            return 0
         return fail(PROG, exc)
     finished = False
     try:

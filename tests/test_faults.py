@@ -7,13 +7,15 @@ import os
 import signal
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
-from protocol import Ack, Keys, Trajectory, decode
+from protocol import Ack, Keys, Stats, Trajectory, decode
 from services.metrics import read_metrics
 from services.persistence import ReplayPersistence
 from services.zsession import open_session
+from tests.procs import free_port, pids_with
 from tests.test_services import next_stats, watch_stats
 
 ENV = "InvertedPendulum-v5"
@@ -107,3 +109,158 @@ def test_replay_killed_with_sigkill_loses_no_acknowledged_fragment(
     print(f"replay kill -9: {len(acked_before)} fragments acknowledged before, all present; "
           f"first ack {recovered - killed_at:.1f} s after the kill; "
           f"{ledger['duplicates']} resends recognised")
+
+
+CLUSTER_FILE = """
+[cluster]
+run_id = "faults"
+endpoint = "{endpoint}"
+restart_backoff_s = 0.5
+
+[train]
+env_id = "{env}"
+total_timesteps = {steps}
+num_envs = 2
+log_interval_s = 1
+
+[services.router]
+command = "tpdeb-router"
+
+[services.replay]
+command = "tpdeb-replay"
+depends_on = ["router"]
+args = ["--snapshot-interval-s", "3"]
+
+[services.learner]
+command = "tpdeb-learner"
+depends_on = ["replay"]
+args = ["--checkpoint-interval-s", "2"]
+
+[services.actor]
+command = "tpdeb-actor"
+replicas = 2
+depends_on = ["learner"]
+"""
+
+
+def service_pid(run_dir, command: str, *extra: str) -> int:
+    """The pid of the cluster's service started as `command` (with `extra` arguments)."""
+    for pid in pids_with(str(run_dir)):
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        text = [a.decode() for a in argv]
+        if any(a.endswith(command) for a in text[:2]) and all(e in text for e in extra):
+            return pid
+    raise AssertionError(f"no {command} {' '.join(extra)} process of {run_dir}")
+
+
+class StatsLog:
+    """Every stats message of the run, in arrival order, with its arrival time."""
+
+    def __init__(self, session, keys: Keys):
+        self.lock = threading.Lock()
+        self.rows: list[tuple[float, str, str, dict]] = []
+        self.subscriber = session.declare_subscriber(keys.stats_all, self._on_stats)
+
+    def _on_stats(self, sample) -> None:
+        stats = decode(sample.payload.to_bytes(), Stats)
+        with self.lock:
+            self.rows.append((time.monotonic(), stats.role, stats.ident, stats.values))
+
+    def series(self, role: str, name: str, ident: str | None = None) -> list[tuple[float, float]]:
+        with self.lock:
+            return [(t, v[name]) for t, r, i, v in self.rows
+                    if r == role and name in v and (ident is None or i == ident)]
+
+    def wait(self, role: str, name: str, until, timeout_s: float = 120,
+             since: float = 0.0) -> float:
+        """When the first stats after `since` satisfying `until` arrived."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            hits = [t for t, value in self.series(role, name) if t > since and until(value)]
+            if hits:
+                return hits[0]
+            time.sleep(0.2)
+        raise AssertionError(f"no {role} {name} satisfying the condition in {timeout_s} s")
+
+
+def non_decreasing(values) -> bool:
+    return all(a <= b for a, b in zip(values, values[1:], strict=False))
+
+
+@pytest.mark.slow
+def test_cluster_survives_kill9_of_an_actor_the_learner_and_the_replay(procs, tmp_path):
+    run_dir = tmp_path / "run"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cluster_file = tmp_path / "cluster.toml"
+    cluster_file.write_text(CLUSTER_FILE.format(endpoint=endpoint, env=ENV, steps=60000))
+    cluster = procs.spawn("cluster", "--config", str(cluster_file), "--run-dir", str(run_dir))
+    procs.wait_for_line(cluster, "[learner] tpdeb-learner: run", timeout_s=120)
+    session = open_session("client", [], [endpoint], connect_timeout_s=30)
+    try:
+        keys = Keys("faults")
+        acks, stats = AckLog(session, keys), StatsLog(session, keys)
+        recovery = {}
+
+        # an actor: its replacement (a new incarnation) gets acknowledgements
+        stats.wait("learner", "global_step", lambda v: v >= 4000)
+        with acks.lock:
+            old_incarnations = {inc for (a, inc, _) in acks.seen if a == 0}
+        os.kill(service_pid(run_dir, "tpdeb-actor", "--actor-id", "0"), signal.SIGKILL)
+        killed = time.monotonic()
+        deadline = killed + 90
+        while time.monotonic() < deadline:
+            with acks.lock:
+                new = [t for (a, inc, _), t in acks.seen.items()
+                       if a == 0 and inc not in old_incarnations]
+            if new:
+                recovery["actor"] = min(new) - killed
+                break
+            time.sleep(0.2)
+        assert "actor" in recovery, "the restarted actor-0 never delivered"
+
+        # the learner: resumes from its checkpoint, versions go on above the old ones
+        time.sleep(3)  # past a periodic checkpoint
+        os.kill(service_pid(run_dir, "tpdeb-learner"), signal.SIGKILL)
+        killed = time.monotonic()
+        time.sleep(0.5)  # stats already on their way
+        before = max(v for _, v in stats.series("learner", "param_version"))
+        back = stats.wait("learner", "param_version", lambda v: v > before, since=killed)
+        resumed_at = min(v for t, v in stats.series("learner", "param_version") if t >= back)
+        # training again: a version past the one the restarted learner came back with
+        recovery["learner"] = stats.wait("learner", "param_version",
+                                         lambda v: v > resumed_at, since=back) - killed
+
+        # the replay: restores everything it acknowledged, acks resume
+        stats.wait("replay", "snapshots_written", lambda v: v >= 1)
+        os.kill(service_pid(run_dir, "tpdeb-replay"), signal.SIGKILL)
+        killed = time.monotonic()
+        acked_before = acks.snapshot()
+        deadline = killed + 90
+        while time.monotonic() < deadline and acks.first_after(killed + 0.05) is None:
+            time.sleep(0.2)
+        first = acks.first_after(killed + 0.05)
+        assert first is not None, "no acknowledgement after the replay restarted"
+        recovery["replay"] = first - killed
+
+        assert cluster.wait(300) == 0, procs.output(cluster)[-3000:]
+        learner_versions = [v for _, v in stats.series("learner", "param_version")]
+        assert non_decreasing(learner_versions), "a parameter version went back"
+        for ident in ("0", "1"):
+            versions = [v for _, v in stats.series("actor", "param_version", ident)]
+            assert non_decreasing(versions), f"actor {ident} took an older version"
+    finally:
+        session.close()
+    out = procs.output(cluster)
+    for name in ("actor-0", "learner", "replay"):
+        assert f"{name} exited with code -9; restarting" in out, out[-3000:]
+    state = stored_state(run_dir)
+    for (actor, incarnation, seq) in acked_before:
+        low, above = state["ledgers"][actor]["windows"][incarnation]
+        assert seq < low or seq in above, f"acknowledged fragment {actor}/{seq} was lost"
+    inserted = state["replay"]["counters"]["inserted"]
+    assert sum(ledger["ingested"] for ledger in state["ledgers"].values()) == inserted
+    print("recovery after kill -9 (s): " + ", ".join(f"{k} {v:.1f}" for k, v in recovery.items())
+          + f"; {len(acked_before)} acknowledged fragments before the replay kill, all present")
