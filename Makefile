@@ -7,7 +7,8 @@ TORCH_SPEC ?= torch==2.13.0
 BIN := $(VENV)/bin
 ARGS ?=
 
-.PHONY: install run serial test lint bench-replay bench-learn bench-throughput bench-bandwidth clean
+.PHONY: install run serial test lint bench-replay bench-learn bench-throughput bench-bandwidth \
+	bench-fuzz bench-soak clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -44,6 +45,14 @@ bench-throughput: install
 
 bench-bandwidth: install
 	$(BIN)/python bench/bandwidth.py
+
+# Every protocol fuzz test at 10,000 cases each (ARGS='--examples 100000' for more).
+bench-fuzz: install
+	$(BIN)/python bench/fuzz.py $(ARGS)
+
+# 10 minutes of the local cluster, RSS drift per service (ARGS='--minutes 30' for longer).
+bench-soak: install
+	$(BIN)/python bench/soak.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

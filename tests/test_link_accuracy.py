@@ -5,19 +5,13 @@ setting and within 5 % of what tbf delivers. Needs root, `ip` and `tc`; skips ot
 
 from __future__ import annotations
 
-import contextlib
 import json
-import os
-import shutil
-import signal
 import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
 
-from tests.procs import ROOT, pids_with
+from tests.netns import Namespaces, must, unavailable
+from tests.procs import ROOT
 
 RATES = [65_536, 262_144, 1_048_576]
 SECONDS = {65_536: 8.0, 262_144: 6.0, 1_048_576: 6.0}  # sending time; the slowest needs longest
@@ -29,17 +23,6 @@ MTU = 9000
 TRAFFIC = str(ROOT / "tests" / "traffic.py")
 
 
-def run(*cmd: str) -> subprocess.CompletedProcess:
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=30, check=False)
-
-
-def must(*cmd: str) -> str:
-    done = run(*cmd)
-    if done.returncode != 0:
-        raise RuntimeError(f"{' '.join(cmd)} failed ({done.returncode}): {done.stderr.strip()}")
-    return done.stdout
-
-
 def tbf_burst(rate: int) -> int:
     """20 ms of the rate, but never less than two jumbo frames and some room: tbf drops any
     (non-GSO) packet larger than its bucket, so a bucket smaller than a 9,014-byte frame would
@@ -48,82 +31,8 @@ def tbf_burst(rate: int) -> int:
     return max(rate // 50, 2 * (MTU + 14) + 4096)
 
 
-class Namespaces:
-    """Two namespaces `a` (sender side) and `b` (receiver side) joined by a veth pair; every
-    process started here is recorded and stopped by `close`."""
-
-    def __init__(self, log_dir: Path):
-        pid = os.getpid()
-        self.a, self.b = f"tpdeb-a-{pid}", f"tpdeb-b-{pid}"
-        subnet = 10 + pid % 240
-        self.addr_a, self.addr_b = f"10.231.{subnet}.1", f"10.231.{subnet}.2"
-        self.dev_a, self.dev_b = "veth-a", "veth-b"  # names live inside the namespaces only
-        self.log_dir = log_dir
-        self.created: list[str] = []
-        self.started: list[subprocess.Popen] = []
-        self.logs: dict[int, Path] = {}
-        self.next_port = 5001
-
-    def create(self) -> None:
-        for ns in (self.a, self.b):
-            must("ip", "netns", "add", ns)
-            self.created.append(ns)
-        must("ip", "-n", self.a, "link", "add", self.dev_a, "type", "veth",
-             "peer", "name", self.dev_b, "netns", self.b)
-        for ns, dev, addr in ((self.a, self.dev_a, self.addr_a), (self.b, self.dev_b, self.addr_b)):
-            must("ip", "-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
-            must("ip", "-n", ns, "link", "set", dev, "mtu", str(MTU))
-            must("ip", "-n", ns, "link", "set", "lo", "up")
-            must("ip", "-n", ns, "link", "set", dev, "up")
-
-    def port(self) -> int:
-        self.next_port += 1
-        return self.next_port
-
-    # -- processes ---------------------------------------------------------------------------
-
-    def spawn(self, ns: str, name: str, *args: str) -> subprocess.Popen:
-        log = self.log_dir / f"{name}-{len(self.started)}.log"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        with log.open("w") as out:
-            proc = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, *args], cwd=ROOT,
-                                    stdout=out, stderr=subprocess.STDOUT,
-                                    stdin=subprocess.DEVNULL, env=env, start_new_session=True)
-        self.started.append(proc)
-        self.logs[proc.pid] = log
-        return proc
-
-    def output(self, proc: subprocess.Popen) -> str:
-        return self.logs[proc.pid].read_text()
-
-    def wait_for_line(self, proc: subprocess.Popen, prefix: str, timeout_s: float = 30) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if any(line.startswith(prefix) for line in self.output(proc).splitlines()):
-                return
-            if proc.poll() is not None:
-                raise AssertionError(f"exited with {proc.returncode} before {prefix!r}:\n"
-                                     f"{self.output(proc)}")
-            time.sleep(0.05)
-        raise AssertionError(f"no {prefix!r} within {timeout_s} s:\n{self.output(proc)}")
-
-    def finish(self, proc: subprocess.Popen, timeout_s: float) -> str:
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"still running after {timeout_s} s:\n"
-                                 f"{self.output(proc)}") from None
-        assert proc.returncode == 0, f"exited with {proc.returncode}:\n{self.output(proc)}"
-        return self.output(proc)
-
-    def stop(self, proc: subprocess.Popen, timeout_s: float = 10) -> None:
-        for sig in (signal.SIGTERM, signal.SIGKILL):
-            if proc.poll() is not None:
-                break
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, sig)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                proc.wait(timeout_s)
+class LinkNamespaces(Namespaces):
+    """The shared namespaces (tests/netns.py) plus the two transfers this test compares."""
 
     # -- measurements ------------------------------------------------------------------------
 
@@ -166,43 +75,15 @@ class Namespaces:
     def link_rate(self, rate: int, seconds: float) -> float:
         return self.transfer(rate, seconds, via_link=True)
 
-    # -- cleanup -----------------------------------------------------------------------------
-
-    def close(self) -> list[str]:
-        """Stop everything, delete the namespaces; returns what was found left over."""
-        problems = []
-        for proc in self.started:
-            self.stop(proc)
-        for ns in self.created:
-            stray = [int(p) for p in run("ip", "netns", "pids", ns).stdout.split()]
-            if stray:
-                problems.append(f"processes left in {ns}: {stray}")
-                for pid in stray:  # ours: nothing else runs in this run's namespaces
-                    with contextlib.suppress(ProcessLookupError):
-                        os.kill(pid, signal.SIGKILL)
-        for ns in self.created:
-            done = run("ip", "netns", "del", ns)
-            if done.returncode != 0:
-                problems.append(f"ip netns del {ns}: {done.stderr.strip()}")
-        listed = run("ip", "netns", "list").stdout.split()
-        problems += [f"namespace {ns} still listed" for ns in self.created if ns in listed]
-        for ns in (self.a, self.b):
-            if pids := pids_with(ns):
-                problems.append(f"processes mentioning {ns}: {pids}")
-        return problems
-
 
 @pytest.fixture(scope="module")
 def namespaces(tmp_path_factory):
-    if os.geteuid() != 0:
-        pytest.skip("needs root to create network namespaces and tc qdiscs")
-    missing = [tool for tool in ("ip", "tc") if shutil.which(tool) is None]
-    if missing:
-        pytest.skip(f"needs {' and '.join(missing)} (iproute2)")
-    spaces = Namespaces(tmp_path_factory.mktemp("link-accuracy"))
+    if reason := unavailable(("ip", "tc")):
+        pytest.skip(reason)
+    spaces = LinkNamespaces(tmp_path_factory.mktemp("link-accuracy"))
     try:
         try:
-            spaces.create()
+            spaces.create(mtu=MTU)
         except (RuntimeError, subprocess.TimeoutExpired) as exc:
             pytest.skip(f"cannot set up network namespaces: {exc}")
         try:  # the tbf qdisc (sch_tbf) may be missing from the kernel

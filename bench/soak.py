@@ -1,0 +1,366 @@
+"""Soak benchmark: does any service's memory keep growing over a long cluster run?
+
+    python bench/soak.py                                   # 10 min, HalfCheetah (deploy/local.toml)
+    python bench/soak.py --minutes 3 --warmup-minutes 1    # a quick check of the script
+
+Starts `tpdeb-cluster` with the cluster file (default deploy/local.toml) in a temporary run
+dir, with `--total-timesteps` far beyond what the soak can reach, and every `--interval-s`
+reads VmRSS of every process under the cluster from /proc. Services are told apart by their
+command lines (tpdeb-router, tpdeb-replay, tpdeb-learner, tpdeb-actor --actor-id N, tpdeb-link;
+the cluster itself is `cluster`), so the script follows whatever the cluster starts; a service
+whose pid changes was restarted and is reported as such.
+
+After `--warmup-minutes` (buffers filling, allocator pools growing) each service is judged:
+warm-up RSS = median of the first minute after warm-up, final RSS = median of the last minute,
+drift = final vs warm-up, PASS when |drift| ≤ `--tolerance-pct` (10 %). At the end the cluster
+gets SIGINT (its graceful stop: checkpoint, snapshot), the script waits for it and checks that
+no process of the run is left. The series goes to `--out` (JSON) and a markdown table is
+printed. Exit status 1 on a FAIL, a restart, an early exit or a process left behind.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import shutil
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+WINDOW_S = 60.0  # the warm-up and final references are medians over one minute each
+SERVICES = ("router", "replay", "learner", "actor", "link", "cluster")
+PROGRESS = re.compile(r"^\[learner\] tpdeb-learner: \[\s*([\d,]+)/[\d,]+\]")
+
+
+def say(text: str) -> None:
+    print(f"[soak] {text}", flush=True)
+
+
+# ----------------------------------------------------------------------------- /proc
+
+def proc_table() -> dict[int, tuple[int, int]]:
+    """pid -> (ppid, start time in clock ticks) of every live process."""
+    table = {}
+    for entry in os.scandir("/proc"):
+        if not entry.name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry.name}/stat") as f:
+                stat = f.read()
+        except OSError:
+            continue
+        fields = stat[stat.rfind(")") + 2:].split()
+        if fields[0] == "Z":
+            continue
+        table[int(entry.name)] = (int(fields[1]), int(fields[19]))
+    return table
+
+
+def descendants(root: int, table: dict[int, tuple[int, int]]) -> list[int]:
+    children: dict[int, list[int]] = {}
+    for pid, (ppid, _) in table.items():
+        children.setdefault(ppid, []).append(pid)
+    out, todo = [], list(children.get(root, []))
+    while todo:
+        pid = todo.pop()
+        out.append(pid)
+        todo.extend(children.get(pid, []))
+    return out
+
+
+def cmdline(pid: int) -> list[str]:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().decode(errors="replace").split("\0")
+    except OSError:
+        return []
+
+
+def rss_kib(pid: int) -> int | None:
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
+def service_name(argv: list[str]) -> str | None:
+    """`actor-0`, `replay`, … from a command line (`tpdeb-x` script or `-m services.x`)."""
+    role = None
+    for i, arg in enumerate(argv):
+        base = os.path.basename(arg)
+        if base.startswith("tpdeb-") and base[6:] in SERVICES:
+            role = base[6:]
+            break
+        if arg == "-m" and i + 1 < len(argv) and argv[i + 1].startswith("services."):
+            role = argv[i + 1].split(".", 1)[1]
+            break
+    if role is None:
+        return None
+    if role == "actor" and "--actor-id" in argv:
+        index = argv.index("--actor-id")
+        if index + 1 < len(argv):
+            return f"actor-{argv[index + 1]}"
+    return role
+
+
+class Sampler:
+    """RSS of the cluster and every service under it, by service name; a name whose pid
+    changes is a restart."""
+
+    def __init__(self, cluster_pid: int, t0: float):
+        self.cluster_pid, self.t0 = cluster_pid, t0
+        self.series: dict[str, list[tuple[float, float]]] = {}  # name -> [(s, MiB)]
+        self.pids: dict[str, list[int]] = {}
+        self.seen: dict[int, tuple[int, str]] = {}  # pid -> (start ticks, name), for the end
+        self.names: dict[int, str] = {}
+
+    def sample(self) -> dict[str, float]:
+        now = time.monotonic() - self.t0
+        table = proc_table()
+        current: dict[str, float] = {}
+        for pid in [self.cluster_pid, *descendants(self.cluster_pid, table)]:
+            if pid not in table:
+                continue
+            if pid not in self.names:
+                name = "cluster" if pid == self.cluster_pid else service_name(cmdline(pid))
+                if name is None:  # a helper under a service: kept apart, under its parent
+                    parent = self.names.get(table[pid][0], "unknown")
+                    name = f"{parent}/{Path(cmdline(pid)[0] or '?').name}"
+                self.names[pid] = name
+                self.seen[pid] = (table[pid][1], name)
+                pids = self.pids.setdefault(name, [])
+                if pid not in pids:
+                    pids.append(pid)
+            kib = rss_kib(pid)
+            if kib is not None:
+                name = self.names[pid]
+                current[name] = current.get(name, 0.0) + kib / 1024
+        for name, mib in current.items():
+            self.series.setdefault(name, []).append((round(now, 2), round(mib, 2)))
+        return current
+
+    def restarts(self) -> dict[str, int]:
+        return {name: len(pids) - 1 for name, pids in self.pids.items() if len(pids) > 1}
+
+    def left_over(self, run_dir: Path) -> list[tuple[int, str]]:
+        """Processes seen during the soak that still run (same pid and start time), and any
+        whose command line names the run dir (started after the last sample)."""
+        table = proc_table()
+        left = {pid: name for pid, (start, name) in self.seen.items()
+                if pid in table and table[pid][1] == start}
+        for pid in table:
+            if pid not in left and pid != os.getpid() and str(run_dir) in " ".join(cmdline(pid)):
+                left[pid] = service_name(cmdline(pid)) or "unknown"
+        return sorted(left.items())
+
+
+# ----------------------------------------------------------------------------- verdict
+
+def judge(series: list[tuple[float, float]], warmup_s: float, end_s: float,
+          tolerance_pct: float) -> dict:
+    after = [(t, v) for t, v in series if t >= warmup_s]
+    first = [v for t, v in after if t < warmup_s + WINDOW_S]
+    last = [v for t, v in after if t >= end_s - WINDOW_S]
+    if not first or not last:
+        return {"result": "FAIL", "why": "no samples after warm-up / in the last minute",
+                "samples": len(after)}
+    warm, final = statistics.median(first), statistics.median(last)
+    drift = 100 * (final - warm) / warm
+    return {"warmup_mib": warm, "min_mib": min(v for _, v in after),
+            "max_mib": max(v for _, v in after), "final_mib": final, "drift_pct": drift,
+            "samples": len(after), "result": "PASS" if abs(drift) <= tolerance_pct else "FAIL"}
+
+
+def render(summary: dict[str, dict], restarts: dict[str, int], tolerance_pct: float) -> str:
+    lines = [f"| service | warm-up MiB | min MiB | max MiB | final MiB | drift % | "
+             f"±{tolerance_pct:g} % |", "|---|---:|---:|---:|---:|---:|---|"]
+    for name, s in summary.items():
+        if "drift_pct" not in s:
+            lines.append(f"| {name} | | | | | | FAIL ({s['why']}) |")
+            continue
+        note = f" (restarted {restarts[name]}×)" if name in restarts else ""
+        lines.append(f"| {name} | {s['warmup_mib']:,.1f} | {s['min_mib']:,.1f} | "
+                     f"{s['max_mib']:,.1f} | {s['final_mib']:,.1f} | {s['drift_pct']:+.1f} | "
+                     f"{s['result']}{note} |")
+    return "\n".join(lines)
+
+
+def order(name: str) -> tuple:
+    role = name.split("-")[0].split("/")[0]
+    return (SERVICES.index(role) if role in SERVICES else len(SERVICES), name)
+
+
+# ----------------------------------------------------------------------------- the run
+
+def cluster_command() -> list[str]:
+    script = Path(sys.executable).parent / "tpdeb-cluster"  # a venv needs no activation
+    return [str(script)] if script.exists() else [sys.executable, "-m", "services.cluster"]
+
+
+def stop_cluster(proc: subprocess.Popen, timeout_s: float) -> int | None:
+    """SIGINT (the cluster's graceful stop), then SIGKILL to its group if it hangs."""
+    if proc.poll() is None:
+        with contextlib.suppress(ProcessLookupError):
+            proc.send_signal(signal.SIGINT)
+        try:
+            return proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            say(f"the cluster did not stop within {timeout_s:g} s of SIGINT: killing it")
+            with contextlib.suppress(ProcessLookupError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            return None
+    return proc.returncode
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--minutes", type=float, default=10.0, help="length of the soak")
+    p.add_argument("--warmup-minutes", type=float, default=2.0,
+                   help="start-up time excluded from the verdict")
+    p.add_argument("--interval-s", type=float, default=5.0, help="seconds between RSS samples")
+    p.add_argument("--tolerance-pct", type=float, default=10.0,
+                   help="largest |final − warm-up| RSS drift that passes, in percent")
+    p.add_argument("--config", default=str(ROOT / "deploy" / "local.toml"), help="cluster file")
+    p.add_argument("--total-timesteps", type=int, default=100_000_000,
+                   help="the run's length: far beyond what the soak reaches, so it never ends")
+    p.add_argument("--stop-timeout-s", type=float, default=120.0,
+                   help="how long the cluster may take to stop after SIGINT")
+    p.add_argument("--out", default=str(ROOT / "docs" / "data" / "soak.json"))
+    p.add_argument("--keep-run-dir", action="store_true",
+                   help="keep the temporary run dir (it is always kept when the soak fails)")
+    p.add_argument("cluster_args", nargs="*",
+                   help="more tpdeb-cluster flags after --, e.g. -- --env-id Hopper-v5")
+    args = p.parse_args()
+    if args.minutes - args.warmup_minutes < 2 * WINDOW_S / 60:
+        p.error(f"--minutes {args.minutes:g} with --warmup-minutes {args.warmup_minutes:g} "
+                "leaves less than 2 minutes after warm-up (one for each reference median)")
+    if args.interval_s <= 0 or args.interval_s * 3 > WINDOW_S:
+        p.error(f"--interval-s {args.interval_s:g}: must be > 0 and ≤ {WINDOW_S / 3:g} (at least "
+                "3 samples in each reference minute)")
+
+    run_dir = Path(tempfile.mkdtemp(prefix="tpdeb-soak-"))
+    argv = [*cluster_command(), "--config", args.config, "--total-timesteps",
+            str(args.total_timesteps), "--run-dir", str(run_dir), *args.cluster_args]
+    log_path = run_dir / "cluster-stdout.log"
+    duration_s, warmup_s = 60 * args.minutes, 60 * args.warmup_minutes
+    say(f"{args.minutes:g} min soak ({args.warmup_minutes:g} min warm-up), RSS every "
+        f"{args.interval_s:g} s; {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    say(f"$ {' '.join(argv)}")
+    started = time.strftime("%Y-%m-%d %H:%M:%S")
+    t0 = time.monotonic()
+    log = log_path.open("w", buffering=1)  # line by line: readable while the soak runs
+    proc = subprocess.Popen(argv, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            stdin=subprocess.DEVNULL, text=True, bufsize=1,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
+    progress: list[tuple[float, int]] = []  # (s, learner global step)
+
+    def read_output() -> None:
+        for line in proc.stdout:
+            log.write(line)
+            if (m := PROGRESS.search(line)) is not None:
+                progress.append((round(time.monotonic() - t0, 2), int(m.group(1).replace(",", ""))))
+
+    reader = threading.Thread(target=read_output, daemon=True, name="cluster-stdout")
+    reader.start()
+    sampler = Sampler(proc.pid, t0)
+    problems: list[str] = []
+    tty = sys.stdout.isatty()
+    last_line = -1e9
+    exit_code = None
+    try:
+        while (elapsed := time.monotonic() - t0) < duration_s:
+            if proc.poll() is not None:
+                problems.append(f"the cluster exited with code {proc.returncode} after "
+                                f"{elapsed:.0f} s (see {log_path})")
+                break
+            current = sampler.sample()
+            if tty or elapsed - last_line >= 60:
+                last_line = elapsed
+                phase = "warm-up" if elapsed < warmup_s else "soak"
+                step = f" | step {progress[-1][1]:,}" if progress else ""
+                rss = " | ".join(f"{n} {v:,.0f}" for n, v in sorted(current.items(),
+                                                                    key=lambda kv: order(kv[0])))
+                text = (f"[soak] {int(elapsed) // 60}:{int(elapsed) % 60:02d}/"
+                        f"{int(duration_s) // 60}:{int(duration_s) % 60:02d} {phase}{step} | "
+                        f"RSS MiB: {rss}")
+                print(("\r\033[K" + text) if tty else text, end="" if tty else "\n", flush=True)
+            time.sleep(max(0.0, args.interval_s - (time.monotonic() - t0 - elapsed)))
+    except KeyboardInterrupt:
+        problems.append("interrupted")
+    finally:
+        if tty:
+            print()
+        end_s = time.monotonic() - t0
+        say("stopping the cluster (SIGINT)…")
+        exit_code = stop_cluster(proc, args.stop_timeout_s)
+        stopped_s = time.monotonic() - t0 - end_s
+        reader.join(10)
+        log.close()
+        left = sampler.left_over(run_dir)
+        for pid, _ in left:  # ours: seen under this run's cluster, same start time
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+    if exit_code not in (0, 130):
+        problems.append(f"the cluster's exit code after SIGINT was {exit_code} (expected 130)")
+    if left:
+        problems.append(f"processes left after the cluster stopped (killed): {left}")
+    restarts = sampler.restarts()
+    if restarts:
+        problems.append(f"services restarted during the soak: {restarts}")
+
+    names = sorted(sampler.series, key=order)
+    summary = {n: judge(sampler.series[n], warmup_s, end_s, args.tolerance_pct) for n in names}
+    failed = [n for n, s in summary.items() if s["result"] != "PASS"]
+    table = render(summary, restarts, args.tolerance_pct)
+    results = {
+        "meta": {"started": started, "minutes": args.minutes,
+                 "warmup_minutes": args.warmup_minutes, "interval_s": args.interval_s,
+                 "tolerance_pct": args.tolerance_pct, "window_s": WINDOW_S,
+                 "cpu_count": os.cpu_count(), "loadavg_end": os.getloadavg(),
+                 "command": argv, "config": args.config, "soak_s": end_s,
+                 "stop_s": stopped_s, "exit_code": exit_code},
+        "summary": summary, "restarts": restarts, "pids": sampler.pids,
+        "series_mib": {n: sampler.series[n] for n in names}, "learner_steps": progress,
+        "problems": problems, "result": "FAIL" if failed or problems else "PASS",
+        "table_markdown": table}
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=1))
+
+    print()
+    print(table)
+    print()
+    if progress:
+        say(f"learner reached step {progress[-1][1]:,} in {end_s / 60:.1f} min")
+    say(f"cluster stopped in {stopped_s:.1f} s with code {exit_code}; "
+        f"{'no process left' if not left else f'{len(left)} process(es) left and killed'}")
+    for problem in problems:
+        say(f"problem: {problem}")
+    say(f"series in {out}")
+    if failed or problems:
+        say(f"FAIL ({', '.join(failed) or 'see the problems above'}); run dir kept: {run_dir}")
+        return 1
+    if args.keep_run_dir:
+        say(f"run dir kept: {run_dir}")
+    else:
+        shutil.rmtree(run_dir, ignore_errors=True)
+    say("PASS")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
