@@ -425,7 +425,8 @@ class LearnerService:
         return totals
 
     def finish(self, finished: bool) -> None:
-        path = self.save_checkpoint(FINAL)
+        # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
+        path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
         if finished:
             self.control_publisher.put(encode(Control(command="stop", reason="total_timesteps")))
         self.stop.set("finished")
