@@ -65,7 +65,8 @@ def coerce(cls, name: str, value, source: str):
         if kind is list:
             if isinstance(value, str):
                 value = value.replace(",", " ").split()
-            return tuple(item(v) for v in value)
+            # An empty string means no item: `--listen ""` clears an endpoint list.
+            return tuple(item(v) for v in value if not (isinstance(v, str) and not v.strip()))
         if kind is bool:
             if isinstance(value, bool):
                 return value

@@ -69,3 +69,11 @@ def test_bad_config_files(tmp_path):
     unknown.write_text("sed = 1")
     with pytest.raises(ConfigError, match="unknown setting 'sed'"):
         parse(["--config", str(unknown)])
+
+
+def test_an_empty_list_flag_clears_the_list():
+    from services.service_config import ReplayServiceConfig
+
+    cfg = resolve(ReplayServiceConfig, ["--listen", "", "--connect", "tcp/127.0.0.1:7447"],
+                  "tpdeb-replay", "test")
+    assert cfg.listen == () and cfg.connect == ("tcp/127.0.0.1:7447",)
