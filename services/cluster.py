@@ -1,10 +1,11 @@
 """`tpdeb-cluster`: a compose-style launcher for the whole run on one machine (SPEC §5).
 
 Reads a cluster file (`deploy/local.toml`), writes the resolved training config into the run
-dir, starts replay → learner → actors as separate processes in dependency order (each waits
-for what it depends on to answer), prefixes and saves their logs, shows a live progress line
-from the services' stats, and stops everything in reverse order at the end or on Ctrl-C.
-The learner ends the run: when it exits 0 the others stop on its stop message.
+dir, starts router → replay → learner → actors as separate processes in dependency order (each
+waits for what it depends on to answer), prefixes and saves their logs, shows a live progress
+line from the services' stats and liveliness tokens, restarts crashed services by their restart
+policy (stopping the run on a crash loop), and stops everything in reverse order at the end or
+on Ctrl-C. The learner ends the run: when it exits 0 the others stop on its stop message.
 """
 
 from __future__ import annotations
@@ -23,12 +24,16 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from protocol import DecodeError, Keys, Stats, decode
+import zenoh
+
+from protocol import Control, DecodeError, Keys, Stats, decode
 from services.config import ConfigError, coerce, load_toml, to_toml
 from services.envs import make_vector_env
+from services.security import SECURITY_KEYS, ClusterSecurity
 from services.service_config import ServiceConfig
 from services.train_config import TrainConfig
 from services.zsession import fetch_spec, open_session
@@ -36,10 +41,115 @@ from services.zsession import fetch_spec, open_session
 PROG = "tpdeb-cluster"
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_FILE = ROOT / "deploy" / "local.toml"
-ROLES = ("replay", "learner", "actor")
-SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env"}
-CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s"}
+ROLES = ("router", "replay", "learner", "actor")
+SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env", "restart"}
+RESTART_KEYS = ("restart_backoff_s", "restart_reset_s", "max_restarts", "crash_loop_window_s")
+CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", *RESTART_KEYS}
+RESTART_MODES = ("no", "on-failure", "always")
+MAX_BACKOFF_S = 30.0
+STALE_INTERVALS = 3  # stats older than this many intervals mark a service stale
 LINK_KEYS = ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms", "queue_ms")
+
+
+@dataclass(frozen=True)
+class RestartPolicy:
+    """Compose's vocabulary: "no", "on-failure" (a non-zero exit), "on-failure:N" (at most N
+    restarts), "always" (any exit, unless the run is ending)."""
+
+    mode: str = "on-failure"
+    limit: int | None = None
+
+    @classmethod
+    def parse(cls, value, where: str) -> RestartPolicy:
+        mode, sep, count = value.partition(":") if isinstance(value, str) else ("", "", "")
+        if mode in RESTART_MODES and not sep:
+            return cls(mode)
+        if mode == "on-failure" and count.isdigit():
+            return cls(mode, int(count))
+        raise ConfigError(f"{where}: restart={value!r} is not a restart policy; use \"no\", "
+                          "\"on-failure\", \"on-failure:N\" (at most N restarts) or \"always\"")
+
+    def restarts_after(self, code: int) -> bool:
+        return self.mode == "always" or (self.mode == "on-failure" and code != 0)
+
+    def __str__(self) -> str:
+        return self.mode if self.limit is None else f"{self.mode}:{self.limit}"
+
+
+@dataclass(frozen=True)
+class RestartSettings:
+    """[cluster] back-off and crash-loop limits, shared by every service."""
+
+    backoff_s: float = 1.0  # first delay; doubles per consecutive failure up to MAX_BACKOFF_S
+    reset_after_s: float = 60.0  # a process up this long starts again from `backoff_s`
+    max_restarts: int = 5  # more restarts of one process within `window_s` is a crash loop
+    window_s: float = 120.0
+    max_backoff_s: float = MAX_BACKOFF_S
+
+    @classmethod
+    def from_section(cls, cluster: dict, path) -> RestartSettings:
+        values = {}
+        for key, name in zip(RESTART_KEYS, ("backoff_s", "reset_after_s", "max_restarts",
+                                            "window_s"), strict=True):
+            if key not in cluster:
+                continue
+            value, integral = cluster[key], name == "max_restarts"
+            number = not isinstance(value, bool) and isinstance(value, (int, float))
+            if not number or (integral and not (value >= 0 and float(value).is_integer())) or (
+                    not integral and not 0 < value < math.inf):
+                raise ConfigError(f"{path} [cluster] {key}={value!r}: expected "
+                                  f"{'an integer ≥ 0' if integral else 'a number of seconds > 0'}")
+            values[name] = int(value) if integral else float(value)
+        return cls(**values)
+
+
+@dataclass
+class Verdict:
+    """What to do about one exit: "restart" after `delay_s`, "stay_down", or "crash_loop"."""
+
+    action: str
+    restarts: int  # restarts so far, this one included
+    delay_s: float = 0.0
+    reason: str = ""
+
+
+class RestartTracker:
+    """When one service process starts again after it exits. Pure: the clock is passed in.
+
+    Back-off doubles per consecutive failure from `backoff_s` up to `max_backoff_s`, and starts
+    over once the process has stayed up `reset_after_s`. More than `max_restarts` restarts within
+    `window_s`, or an on-failure:N limit reached, is a crash loop: restarting again would only
+    hide a fault that needs a person."""
+
+    def __init__(self, policy: RestartPolicy, settings: RestartSettings):
+        self.policy, self.settings = policy, settings
+        self.restarts = 0
+        self.consecutive = 0
+        self.recent: deque[float] = deque()  # times of restarts within the window
+        self.started_at: float | None = None
+
+    def started(self, now: float) -> None:
+        self.started_at = now
+
+    def exited(self, code: int, now: float) -> Verdict:
+        s = self.settings
+        if not self.policy.restarts_after(code):
+            return Verdict("stay_down", self.restarts)
+        if self.started_at is not None and now - self.started_at >= s.reset_after_s:
+            self.consecutive = 0
+        while self.recent and now - self.recent[0] > s.window_s:
+            self.recent.popleft()
+        if self.policy.limit is not None and self.restarts >= self.policy.limit:
+            return Verdict("crash_loop", self.restarts, reason=f'restart = "{self.policy}"')
+        if len(self.recent) >= s.max_restarts:
+            return Verdict("crash_loop", self.restarts,
+                           reason=f"max_restarts = {s.max_restarts} within crash_loop_window_s "
+                                  f"= {s.window_s:g} s")
+        delay_s = min(s.backoff_s * 2 ** self.consecutive, s.max_backoff_s)
+        self.consecutive += 1
+        self.restarts += 1
+        self.recent.append(now)
+        return Verdict("restart", self.restarts, delay_s)
 
 
 @dataclass
@@ -50,6 +160,7 @@ class ServiceSpec:
     depends_on: list[str] = field(default_factory=list)
     args: list[str] = field(default_factory=list)
     env: dict[str, str] = field(default_factory=dict)
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
 
 
 @dataclass
@@ -63,6 +174,8 @@ class Plan:
     source: str
     link: dict = field(default_factory=dict)  # [link] settings; empty: actors connect directly
     link_endpoint: str = ""
+    restarts: RestartSettings = field(default_factory=RestartSettings)
+    security: ClusterSecurity = field(default_factory=ClusterSecurity)
 
 
 def free_port() -> int:
@@ -87,7 +200,7 @@ def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
             visit(dep)
         ordered.append(services[name])
 
-    for name in services:
+    for name in sorted(services, key=lambda n: n != "router"):  # the network comes up first
         visit(name)
     return ordered
 
@@ -95,10 +208,10 @@ def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
 def make_plan(args: argparse.Namespace) -> Plan:
     path = Path(args.config) if args.config else DEFAULT_FILE
     data = load_toml(path)
-    unknown = set(data) - {"cluster", "train", "services", "link"}
+    unknown = set(data) - {"cluster", "train", "services", "link", "security"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; expected cluster, "
-                          "train, services, link")
+                          "train, services, link, security")
     cluster = data.get("cluster", {})
     if set(cluster) - CLUSTER_KEYS:
         raise ConfigError(f"{path} [cluster]: unknown key(s) {sorted(set(cluster) - CLUSTER_KEYS)}"
@@ -110,17 +223,24 @@ def make_plan(args: argparse.Namespace) -> Plan:
         if set(body) - SERVICE_KEYS:
             raise ConfigError(f"{path} [services.{role}]: unknown key(s) "
                               f"{sorted(set(body) - SERVICE_KEYS)}; known: {sorted(SERVICE_KEYS)}")
-        services[role] = ServiceSpec(role=role, **body)
+        body = dict(body)
+        restart = RestartPolicy.parse(body.pop("restart", "on-failure"),
+                                      f"{path} [services.{role}]")
+        services[role] = ServiceSpec(role=role, restart=restart, **body)
     missing = set(ROLES) - set(services)
     if missing:
-        raise ConfigError(f"{path}: services {sorted(missing)} are missing")
+        raise ConfigError(f"{path}: services {sorted(missing)} are missing (see "
+                          f"{DEFAULT_FILE} for their sections)")
+    if services["router"].depends_on:
+        raise ConfigError(f"{path} [services.router]: depends_on="
+                          f"{services['router'].depends_on}: the router starts first; remove it")
     if args.actors is not None:
         services["actor"].replicas = args.actors
     for spec in services.values():
         if spec.replicas < (1 if spec.role == "actor" else 0) or (
                 spec.role != "actor" and spec.replicas != 1):
-            raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the replay and "
-                              "the learner run once, actors at least once")
+            raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
+                              "replay and the learner run once, actors at least once")
     train = dict(data.get("train", {}))
     overrides = {"env_id": args.env_id, "total_timesteps": args.total_timesteps,
                  "seed": args.seed, "run_dir": args.run_dir, "num_envs": args.num_envs}
@@ -140,15 +260,19 @@ def make_plan(args: argparse.Namespace) -> Plan:
     endpoint = args.endpoint or cluster.get("endpoint", "tcp/127.0.0.1:auto")
     if endpoint.endswith(":auto"):
         endpoint = f"{endpoint[:-len('auto')]}{free_port()}"
+    security = ClusterSecurity.from_section(
+        data.get("security", {}), {k: getattr(args, k, None) for k in SECURITY_KEYS}, str(path))
+    endpoint = security.endpoint(endpoint)
     link = link_settings(data.get("link", {}), args, path)
     link_endpoint = ""
-    if any(link.get(k, 0) for k in LINK_KEYS[:4]):
-        link_endpoint = f"tcp/127.0.0.1:{free_port()}"
+    if any(link.get(k, 0) for k in LINK_KEYS[:4]):  # the link forwards TLS bytes unchanged
+        link_endpoint = security.endpoint(f"tcp/127.0.0.1:{free_port()}")
     return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
                 stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
                 start_timeout_s=float(cluster.get("start_timeout_s", 120)),
                 train=train_config, services=start_order(services), source=str(path),
-                link=link, link_endpoint=link_endpoint)
+                link=link, link_endpoint=link_endpoint,
+                restarts=RestartSettings.from_section(cluster, path), security=security)
 
 
 def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:
@@ -190,26 +314,81 @@ def _die_with_parent() -> None:
         ctypes.CDLL("libc.so.6").prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
 
 
+class RunEnded(Exception):
+    """The run must end with this exit status (the reason has been shown already)."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
 class Child:
-    """One service process, its log file and the thread that prefixes its output."""
+    """One service process slot: its command, log file and restart book-keeping, the current
+    process, and the thread that prefixes its output. A restart starts a new process with the
+    same argv that appends to the same log."""
 
-    def __init__(self, name: str, argv: list[str], env: dict, log_dir: Path, echo):
-        self.name, self.argv = name, argv
-        self.log = (log_dir / f"{name}.log").open("a", buffering=1)
+    def __init__(self, name: str, role: str, argv: list[str], env: dict, log_path: Path, echo,
+                 tracker: RestartTracker, ident: str | None = None, has_token: bool = True,
+                 stats_interval_s: float = 1.0):
+        self.name, self.role, self.argv, self.env = name, role, argv, env
+        self.log_path, self.echo, self.tracker = log_path, echo, tracker
+        self.ident = ident  # its stats (and liveliness token) are {role}/{ident}; None: none
+        self.has_token = has_token
+        self.stats_interval_s = stats_interval_s
+        self.proc: subprocess.Popen | None = None
+        self.reader: threading.Thread | None = None
+        self.restart_at: float | None = None  # monotonic time a scheduled restart is due
+        self.last_code: int | None = None
+        self.reported = False  # the current process's exit was handed to the supervisor
+
+    def start(self, now: float) -> None:
+        log = self.log_path.open("a", buffering=1)
+        if self.tracker.restarts:
+            log.write(f"--- restart #{self.tracker.restarts} (exit code {self.last_code}) ---\n")
         self.proc = subprocess.Popen(
-            argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=env, start_new_session=True, preexec_fn=_die_with_parent, text=True,
-            bufsize=1)
-        self.reader = threading.Thread(target=self._pump, args=(echo,), daemon=True)
+            self.argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+            stdin=subprocess.DEVNULL, env=self.env, start_new_session=True,
+            preexec_fn=_die_with_parent, text=True, bufsize=1)
+        self.reader = threading.Thread(target=self._pump, args=(self.proc, log), daemon=True)
         self.reader.start()
+        self.tracker.started(now)
+        self.restart_at, self.reported = None, False
 
-    def _pump(self, echo) -> None:
-        for line in self.proc.stdout:
-            self.log.write(line)
-            echo(f"[{self.name}] {line.rstrip()}")
-        self.log.close()
+    def _pump(self, proc: subprocess.Popen, log) -> None:
+        for line in proc.stdout:
+            log.write(line)
+            self.echo(f"[{self.name}] {line.rstrip()}")
+        log.close()
 
-    def stop(self, timeout_s: float) -> int:
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def poll_exit(self) -> int | None:
+        """The current process's exit code, returned once, when it has ended."""
+        if self.proc is None or self.reported or self.proc.poll() is None:
+            return None
+        self.reported, self.last_code = True, self.proc.returncode
+        self.reader.join(timeout=5)  # its last words are in the log before anyone reads it
+        return self.last_code
+
+    def tail(self, lines: int = 3) -> list[str]:
+        """The last lines of the log (read from its end: logs of long runs are large)."""
+        try:
+            with self.log_path.open("rb") as f:
+                f.seek(max(0, f.seek(0, os.SEEK_END) - 16384))
+                return f.read().decode(errors="replace").splitlines()[-lines:]
+        except OSError:
+            return []
+
+    def view(self) -> ServiceView:
+        return ServiceView(self.name, self.role, self.ident, self.has_token, self.running,
+                           self.tracker.restarts, self.stats_interval_s)
+
+    def stop(self, timeout_s: float) -> int | None:
+        self.restart_at = None
+        if self.proc is None:
+            return None
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
             try:
@@ -219,6 +398,82 @@ class Child:
                 self.proc.wait()
         self.reader.join(timeout=5)
         return self.proc.returncode
+
+
+@dataclass
+class ServiceView:
+    """What the cluster knows of one process, for the status line."""
+
+    name: str
+    role: str
+    ident: str | None  # stats/liveliness ident; None: publishes neither (the router)
+    has_token: bool
+    running: bool
+    restarts: int = 0
+    stats_interval_s: float = 1.0
+
+
+class Health:
+    """Which services are alive, from their liveliness tokens (SPEC §3) and the age of their
+    stats; rendered as the `up: …` part of the status line. Thread-safe: Zenoh callbacks feed
+    it, the supervisor reads it."""
+
+    def __init__(self):
+        self.alive: set[tuple[str, str]] = set()
+        self.seen: set[tuple[str, str]] = set()  # had a token since its last (re)start
+        self.stats_at: dict[tuple[str, str], float] = {}
+        self.lock = threading.Lock()
+
+    def on_token(self, sample) -> None:
+        """Liveliness subscriber callback: …/alive/{role}/{ident} appears (PUT) or goes."""
+        role, _, ident = str(sample.key_expr).rpartition("/alive/")[2].partition("/")
+        self.token(role, ident, sample.kind == zenoh.SampleKind.PUT)
+
+    def token(self, role: str, ident: str, alive: bool) -> None:
+        with self.lock:
+            (self.alive.add if alive else self.alive.discard)((role, ident))
+            if alive:
+                self.seen.add((role, ident))
+
+    def saw_stats(self, role: str, ident: str, now: float) -> None:
+        with self.lock:
+            self.stats_at[(role, ident)] = now
+
+    def restarted(self, role: str, ident: str | None) -> None:
+        """A restarted process starts fresh: its predecessor's stats do not make it stale."""
+        with self.lock:
+            self.stats_at.pop((role, ident), None)
+            self.seen.discard((role, ident))
+
+    def summary(self, views: list[ServiceView], now: float) -> str:
+        up, starting, unreachable, down, stale = [], [], [], [], []
+        actors = actors_up = 0
+        with self.lock:
+            for v in views:
+                key = (v.role, v.ident)
+                # A token gone while the process runs: the network lost it, or it is stopping.
+                state = ("down" if not v.running else "up" if not v.has_token or
+                         key in self.alive else "unreachable" if key in self.seen else "starting")
+                seen = self.stats_at.get(key)
+                if state == "up" and seen is not None and \
+                        now - seen > STALE_INTERVALS * v.stats_interval_s:
+                    stale.append(f"{v.name} {now - seen:.0f} s")
+                if v.role == "actor":
+                    actors, actors_up = actors + 1, actors_up + (state == "up")
+                else:
+                    {"up": up, "starting": starting, "unreachable": unreachable,
+                     "down": down}[state].append(v.name)
+        if actors:
+            up.append(f"actors {actors_up}/{actors}")
+        parts = [f"up: {' '.join(up) or 'none'}"]
+        parts += [f"{label}: {' '.join(names)}" for label, names in
+                  (("starting", starting), ("unreachable", unreachable), ("down", down)) if names]
+        if stale:
+            parts.append(f"stale: {', '.join(stale)}")
+        restarts = [f"{v.name} {v.restarts}" for v in views if v.restarts]
+        if restarts:
+            parts.append(f"restarts: {', '.join(restarts)}")
+        return " | ".join(parts)
 
 
 class Display:
@@ -232,21 +487,23 @@ class Display:
         self.last_plain = 0.0
         self.status = ""
 
-    def on_stats(self, sample) -> None:
+    def on_stats(self, sample) -> Stats | None:
         try:
             stats = decode(sample.payload.to_bytes(), Stats)
         except DecodeError:
-            return
+            return None
         with self.lock:
             self.latest[(stats.role, stats.ident)] = stats.values
+        return stats
 
-    def line(self, alive_actors: int, total_actors: int) -> str:
+    def line(self, health: str) -> str:
+        """Training progress from the latest stats, then `health` (Health.summary)."""
         with self.lock:
             learner = self.latest.get(("learner", "0"), {})
             replay = self.latest.get(("replay", "0"), {})
             link = self.latest.get(("link", "0"))
         if not learner:
-            return f"starting… actors {alive_actors}/{total_actors}"
+            return f"starting… | {health}"
         link_text = (f" | link ↑{link.get('up_bytes_per_s', 0) / 1e3:,.0f} "
                      f"↓{link.get('down_bytes_per_s', 0) / 1e3:,.0f} kB/s") if link else ""
         step, total = int(learner.get("global_step", 0)), int(learner.get("total_timesteps", 0))
@@ -256,8 +513,7 @@ class Display:
         return (f"{step:,}/{total:,} steps{pct} | {learner.get('sps', 0):,.0f} SPS | return "
                 f"{ret:,.1f} | replay {fill[0]} fragments + {fill[1]:,} steps | lag "
                 f"{learner.get('param_version_lag', math.nan):.1f} versions | "
-                f"{int(learner.get('updates', 0)):,} updates | actors {alive_actors}/"
-                f"{total_actors}{link_text}")
+                f"{int(learner.get('updates', 0)):,} updates{link_text} | {health}")
 
     def echo(self, text: str) -> None:
         with self.lock:
@@ -284,13 +540,19 @@ class Cluster:
         self.plan = plan
         self.run_dir = Path(plan.train.run_dir)
         self.display = Display(out)
-        self.children: list[Child] = []
+        self.children: list[Child] = []  # in start order
+        self.health = Health()
         self.stopping = threading.Event()
+        self.finishing = threading.Event()  # the learner broadcast its stop
         self.session = None
         self.interrupted = False
 
     def write_run_dir(self) -> Path:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+        if self.plan.security.enabled:
+            host = self.plan.endpoint.partition("/")[2].rpartition(":")[0].strip("[]")
+            self.plan.security.prepare(self.run_dir / "security", self.users(),
+                                       [host, "127.0.0.1", "localhost"])
         service_config = ServiceConfig(**dataclasses.asdict(self.plan.train),
                                        run_id=self.plan.run_id, connect=(self.plan.endpoint,))
         path = self.run_dir / "train.toml"
@@ -299,22 +561,36 @@ class Cluster:
             "source": self.plan.source, "run_id": self.plan.run_id,
             "endpoint": self.plan.endpoint, "link": self.plan.link,
             "link_endpoint": self.plan.link_endpoint,
-            "services": [dataclasses.asdict(s) for s in self.plan.services],
+            "services": [{**dataclasses.asdict(s), "restart": str(s.restart)}
+                         for s in self.plan.services],
+            "restarts": dataclasses.asdict(self.plan.restarts),
+            "security": self.plan.security.summary(),
             "train": dataclasses.asdict(service_config)}, indent=2))
         return path
+
+    def users(self) -> list[str]:
+        """One user per process that opens a session (access control knows them by role)."""
+        users = ["monitor"] + (["link"] if self.plan.link_endpoint else [])
+        for spec in self.plan.services:
+            users += [user_of(spec.role, i) for i in range(spec.replicas) if spec.role != "router"]
+        return users
 
     def argv(self, spec: ServiceSpec, train_file: Path, index: int) -> list[str]:
         argv = [*resolve_command(spec.command), "--config", str(train_file),
                 "--run-id", self.plan.run_id]
-        if spec.role == "replay":
-            argv += ["--listen", self.plan.endpoint]
+        if spec.role == "router":
+            argv += ["--listen", self.plan.endpoint, *self.plan.security.router_args()]
+        elif spec.role == "replay":
+            # A client of the router (no listen endpoint of its own): the network lives in
+            # the router process and outlives a replay restart.
+            argv += ["--listen", "", "--connect", self.plan.endpoint]
         elif spec.role == "actor" and self.plan.link_endpoint:
             argv += ["--connect", self.plan.link_endpoint]  # actors sit behind the link
         else:
             argv += ["--connect", self.plan.endpoint]
         if spec.role == "actor":
             argv += ["--actor-id", str(index)]
-        if self.plan.link_endpoint and spec.role in ("replay", "actor"):
+        if self.plan.link_endpoint and spec.role in ("router", "actor"):  # the link's ends
             argv += ["--tcp-buffer-bytes", str(self.link_tcp_buffer())]
         return argv + [str(a) for a in spec.args]
 
@@ -339,34 +615,77 @@ class Cluster:
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
         keys = Keys(self.plan.run_id)
         try:
-            # Started in dependency order without waiting in between: each service waits for
-            # what it needs (the router, the run spec, the first parameters), so their slow
-            # imports overlap. The checks below then name the one that fails to come up.
-            for spec in self.plan.services:
+            router, *others = self.plan.services
+            self.add(router, train_file, 0)
+            self.wait_until(lambda: self.connect(keys), "router")
+            # The rest in dependency order without waiting in between: each service waits for
+            # what it needs (the run spec, the first parameters), so their slow imports
+            # overlap. The checks below then name the one that fails to come up.
+            for spec in others:
                 if spec.role == "actor" and self.plan.link_endpoint:
-                    self.children.append(Child("link", self.link_argv(), dict(os.environ),
-                                               self.run_dir / "logs", say))
+                    self.add_link(router)
                 for i in range(spec.replicas):
-                    name = spec.role if spec.replicas == 1 else f"{spec.role}-{i}"
-                    env = {**os.environ, **{k: str(v) for k, v in spec.env.items()}}
-                    self.children.append(Child(name, self.argv(spec, train_file, i), env,
-                                               self.run_dir / "logs", say))
-            self.connect(keys)
+                    if not self.stopping.is_set():
+                        self.add(spec, train_file, i)
             self.wait_until(lambda: fetch_spec(self.session, keys, 1.0) is not None, "replay")
             self.wait_until(lambda: self._answers(self.session, keys.params_latest), "learner")
             return self.supervise()
         except ConfigError as exc:
             say(f"[{PROG}] error: {exc}")
             return 1
+        except RunEnded as end:
+            return end.code
         finally:
             self.shutdown()
             if self.session is not None:
                 self.session.close()
 
-    def connect(self, keys: Keys) -> None:
-        """The cluster's own client session: readiness checks and the stats it displays."""
-        self.session = open_session("client", [], [self.plan.endpoint], self.plan.start_timeout_s)
-        self.subscriber = self.session.declare_subscriber(keys.stats_all, self.display.on_stats)
+    def add(self, spec: ServiceSpec, train_file: Path, index: int) -> None:
+        name = spec.role if spec.replicas == 1 else f"{spec.role}-{index}"
+        env = {**os.environ, **{k: str(v) for k, v in spec.env.items()},
+               **self.plan.security.env(user_of(spec.role, index))}
+        self.start(Child(
+            name, spec.role, self.argv(spec, train_file, index), env,
+            self.run_dir / "logs" / f"{name}.log", self.display.echo,
+            RestartTracker(spec.restart, self.plan.restarts),
+            ident=None if spec.role == "router" else str(index),
+            has_token=spec.role != "router",
+            stats_interval_s=stats_interval_s(spec.args, env)))
+
+    def add_link(self, router: ServiceSpec) -> None:
+        # The link is part of the network between the actors and the router: restarted like it.
+        self.start(Child("link", "link", self.link_argv(),
+                         {**os.environ, **self.plan.security.env("link")},
+                         self.run_dir / "logs" / "link.log", self.display.echo,
+                         RestartTracker(router.restart, self.plan.restarts), ident="0",
+                         has_token=False))
+
+    def start(self, child: Child) -> None:
+        child.start(time.monotonic())
+        self.children.append(child)
+
+    def connect(self, keys: Keys) -> bool:
+        """The cluster's own client session: readiness checks, the stats and liveliness tokens
+        it displays, and the learner's stop message (after which nothing is restarted)."""
+        # Short attempts: a router that crashes while starting is noticed (and restarted).
+        self.session = open_session("client", [], [self.plan.endpoint], 1.0,
+                                    security=self.plan.security.session("monitor"))
+        self.subscribers = [
+            self.session.declare_subscriber(keys.stats_all, self._on_stats),
+            self.session.declare_subscriber(keys.control, self._on_control),
+            self.session.liveliness().declare_subscriber(keys.alive_all, self.health.on_token,
+                                                         history=True)]
+        return True
+
+    def _on_stats(self, sample) -> None:
+        stats = self.display.on_stats(sample)
+        if stats is not None:
+            self.health.saw_stats(stats.role, stats.ident, time.monotonic())
+
+    def _on_control(self, sample) -> None:
+        with contextlib.suppress(DecodeError):
+            if decode(sample.payload.to_bytes(), Control).command == "stop":
+                self.finishing.set()
 
     @staticmethod
     def _answers(session, key: str) -> bool:
@@ -375,78 +694,125 @@ class Cluster:
     def wait_until(self, ready, what: str) -> None:
         deadline = time.monotonic() + self.plan.start_timeout_s
         while time.monotonic() < deadline and not self.stopping.is_set():
-            crashed = self.exited()
-            if crashed:
-                raise ConfigError(f"{crashed.name} exited with code {crashed.proc.returncode} "
-                                  f"while starting; see {self.run_dir}/logs/{crashed.name}.log")
-            with contextlib.suppress(ConfigError):
+            end = self.tend()
+            if end is not None:
+                raise RunEnded(end)
+            with contextlib.suppress(ConfigError, zenoh.ZError):  # not yet: ask again
                 if ready():
                     return
+            self.display.show(self.status_line())
             time.sleep(0.2)
         if not self.stopping.is_set():
-            raise ConfigError(f"{what} did not come up within {self.plan.start_timeout_s:g} s")
-
-    def exited(self) -> Child | None:
-        return next((c for c in self.children if c.proc.poll() is not None), None)
+            raise ConfigError(f"{what} did not come up within {self.plan.start_timeout_s:g} s "
+                              f"(start_timeout_s); see {self.run_dir}/logs/{what}.log")
 
     def supervise(self) -> int:
-        actors = [c for c in self.children if c.name.startswith("actor")]
-        learner = next(c for c in self.children if c.name == "learner")
-        replay = next(c for c in self.children if c.name == "replay")
-        link = next((c for c in self.children if c.name == "link"), None)
-        reported: set[str] = set()
         while not self.stopping.is_set():
-            if learner.proc.poll() is not None:
-                code = learner.proc.returncode
-                self.display.echo(f"[{PROG}] learner exited with code {code}")
-                return 0 if code == 0 and not self.interrupted else (130 if self.interrupted
-                                                                    else 1)
-            if link is not None and link.proc.poll() is not None and learner.proc.poll() is None:
-                self.display.echo(f"[{PROG}] link exited with code {link.proc.returncode}: "
-                                  f"stopping the run (see {self.run_dir}/logs/link.log)")
-                return 1
-            if replay.proc.poll() is not None and not (
-                    replay.proc.returncode == 0 and self.learner_finishing(learner)):
-                self.display.echo(f"[{PROG}] replay exited with code {replay.proc.returncode}: "
-                                  f"stopping the run (see {self.run_dir}/logs/replay.log)")
-                return 1
-            for actor in actors:
-                if actor.proc.poll() is not None and actor.name not in reported:
-                    reported.add(actor.name)
-                    if actor.proc.returncode == 0:
-                        continue  # left on the learner's stop message
-                    self.display.echo(f"[{PROG}] {actor.name} exited with code "
-                                      f"{actor.proc.returncode}; the other actors go on")
-            alive = sum(a.proc.poll() is None for a in actors)
-            if not alive and all(a.proc.returncode == 0 for a in actors) and \
-                    self.learner_finishing(learner):
-                continue  # the actors left on the learner's stop message; it exits next
-            if not alive:
-                self.display.echo(f"[{PROG}] no actor is left: stopping the run")
-                return 1
-            self.display.show(self.display.line(alive, len(actors)))
+            end = self.tend()
+            if end is not None:
+                return end
+            self.display.show(self.status_line())
             time.sleep(0.5)
         return 130
 
-    def learner_finishing(self, learner: Child) -> bool:
-        """The replay left on the learner's stop message: give the learner time to finish."""
-        try:
-            learner.proc.wait(self.plan.stop_timeout_s)
-        except subprocess.TimeoutExpired:
-            return False
+    def status_line(self) -> str:
+        return self.display.line(self.health.summary([c.view() for c in self.children],
+                                                     time.monotonic()))
+
+    def tend(self) -> int | None:
+        """One supervision step: notice exits, apply the restart policies, start the restarts
+        that are due. Returns the run's exit status once the run must end."""
+        now = time.monotonic()
+        for child in self.children:
+            code = child.poll_exit()
+            if code is not None:
+                end = self.on_exit(child, code, now)
+                if end is not None:
+                    return end
+            elif child.restart_at is not None and now >= child.restart_at and not self.ending:
+                self.health.restarted(child.role, child.ident)
+                child.start(now)
+        return self.check_actors()
+
+    @property
+    def ending(self) -> bool:
+        """Ctrl-C, or the learner's stop message: nothing is restarted any more."""
+        return self.stopping.is_set() or self.finishing.is_set()
+
+    def on_exit(self, child: Child, code: int, now: float) -> int | None:
+        say = self.display.echo
+        if child.role == "learner" and code == 0:  # the learner ends the run
+            self.finishing.set()
+            say(f"[{PROG}] learner exited with code 0")
+            return 130 if self.interrupted else 0
+        if self.stopping.is_set():
+            return None
+        if code == 0 and child.role != "learner" and self.learner_finishing():
+            return None  # it left on the learner's stop message; the learner exits next
+        if self.finishing.is_set():
+            if child.role != "learner":
+                return None
+            say(f"[{PROG}] learner exited with code {code} while finishing; see {child.log_path}")
+            return 1
+        verdict = child.tracker.exited(code, now)
+        if verdict.action == "restart":
+            child.restart_at = now + verdict.delay_s
+            say(f"[{PROG}] {child.name} exited with code {code}; restarting in "
+                f"{verdict.delay_s:g} s (restart {verdict.restarts})")
+            return None
+        if verdict.action == "crash_loop":
+            tail = "".join(f"\n    {line}" for line in child.tail(3))
+            say(f"[{PROG}] {child.name} is crash looping: exited with code {code} after "
+                f"{verdict.restarts} restart{'' if verdict.restarts == 1 else 's'} "
+                f"({verdict.reason}); stopping the run. Its log {child.log_path} ends:{tail}")
+            return 1
+        policy = f'restart = "{child.tracker.policy}"'
+        if child.role == "actor":  # stays down by its policy; the others go on
+            say(f"[{PROG}] {child.name} exited with code {code}; the other actors go on "
+                f"({policy})")
+            return None
+        say(f"[{PROG}] {child.name} exited with code {code}: stopping the run ({policy}; see "
+            f"{child.log_path})")
+        return 1
+
+    def check_actors(self) -> int | None:
+        actors = [c for c in self.children if c.role == "actor"]
+        if not actors or self.finishing.is_set() or any(
+                a.running or a.restart_at is not None for a in actors):
+            return None
+        if all(a.last_code == 0 for a in actors) and self.learner_finishing():
+            return None  # the actors left on the learner's stop message; it exits next
+        self.display.echo(f"[{PROG}] no actor is left: stopping the run")
+        return 1
+
+    def learner_finishing(self) -> bool:
+        """Whether the run is ending on the learner's stop message. A service may see the
+        message before this cluster does: wait up to stop_timeout_s for it (or the learner's
+        exit 0)."""
+        learner = next((c for c in self.children if c.role == "learner"), None)
+        deadline = time.monotonic() + self.plan.stop_timeout_s
+        while not self.stopping.is_set():
+            if self.finishing.is_set() or (learner is not None and learner.proc.poll() == 0):
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            time.sleep(0.1)
         return True
 
     def shutdown(self) -> None:
-        """Reverse start order: actors, then the learner (final checkpoint), then the replay.
-        Processes already told to stop by the learner get time to finish on their own."""
+        """Reverse start order: actors, then the learner (final checkpoint), then the replay,
+        then the router. Processes already told to stop by the learner get time to finish on
+        their own; nothing is restarted from here on."""
+        finishing = self.finishing.is_set() and not self.interrupted
+        self.stopping.set()
         deadline = time.monotonic() + 5.0
-        while time.monotonic() < deadline and any(c.proc.poll() is None for c in self.children):
-            if self.interrupted:
-                break
+        while finishing and time.monotonic() < deadline and any(
+                c.running for c in self.children if c.role not in ("router", "link")):
             time.sleep(0.1)
         for child in reversed(self.children):
+            reported = child.reported
             code = child.stop(self.plan.stop_timeout_s)
-            if code not in (0, None) and code != -signal.SIGTERM:
+            if not reported and code not in (0, None, -signal.SIGTERM):
                 self.display.echo(f"[{PROG}] {child.name} ended with code {code}")
         if self.display.tty:
             self.display.out.write("\n")
@@ -455,6 +821,28 @@ class Cluster:
         self.interrupted = True
         self.stopping.set()
         self.display.echo(f"[{PROG}] {signal.Signals(signum).name}: stopping the services")
+
+
+def user_of(role: str, index: int) -> str:
+    """The user a service authenticates as: its role, with the actor's id ("" for the router,
+    which authenticates the others)."""
+    return {"actor": f"actor-{index}", "router": ""}.get(role, role)
+
+
+def stats_interval_s(args: list, env: dict) -> float:
+    """The stats interval a service was given (flag, else TPDEB_ variable, else the default),
+    against which the display judges its stats stale."""
+    args = [str(a) for a in args]
+    value = env.get("TPDEB_STATS_INTERVAL_S")
+    for i, arg in enumerate(args):
+        if arg == "--stats-interval-s" and i + 1 < len(args):
+            value = args[i + 1]
+        elif arg.startswith("--stats-interval-s="):
+            value = arg.partition("=")[2]
+    try:
+        return float(value) if value else ServiceConfig.stats_interval_s
+    except ValueError:
+        return ServiceConfig.stats_interval_s  # the service itself refuses it, with the reason
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -469,6 +857,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--run-dir", help="run directory (default runs/{env}__{exp}__{seed}__{time})")
     p.add_argument("--run-id", help="Zenoh run id (default from the file)")
     p.add_argument("--endpoint", help="router endpoint, e.g. tcp/127.0.0.1:7447")
+    for key, text in (("tls", "TLS on every link (the endpoint becomes tls/…)"),
+                      ("auth", "a generated user and password per service"),
+                      ("acl", "access control: each service only its role's traffic")):
+        p.add_argument(f"--{key}", action=argparse.BooleanOptionalAction, default=None,
+                       help=f"{text} (overrides [security])")
+    p.add_argument("--certs-dir", help="ca.pem, router.pem, router.key to use (tpdeb-certs "
+                   "writes them; default: new ones in {run_dir}/security)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="any training setting, e.g. --set learning_rate=3e-4 (repeatable)")
     for key in LINK_KEYS:

@@ -22,6 +22,7 @@ import time
 from dataclasses import dataclass
 
 from services.config import ConfigError, resolve
+from services.security import Security, check_settings
 from services.zsession import check_endpoints, fail, say
 
 PROG = "tpdeb-link"
@@ -52,10 +53,21 @@ class LinkConfig:
     """publish achieved rates over Zenoh to the learner-side router (the learner logs link/*)"""
     stats_interval_s: float = 1.0
     """seconds between stats reports"""
+    tls_ca: str = ""
+    """CA certificate the stats session trusts when --connect is tls/… (the bridged bytes
+    pass through untouched: TLS runs end to end between actors and the router)"""
+    user: str = ""
+    """user the stats session authenticates with (under access control: link)"""
+    password: str = ""
+    """password of --user: set it as TPDEB_PASSWORD, not as a flag (argv shows in ps)"""
 
     def __post_init__(self):
         check_endpoints("listen", [self.listen])
         check_endpoints("connect", [self.connect])
+        if self.listen.partition("/")[0] != self.connect.partition("/")[0]:
+            raise ConfigError(f"listen={self.listen} and connect={self.connect}: the link "
+                              "forwards bytes unchanged, so both must use the same protocol")
+        check_settings([], [self.connect], self.tls_ca, user=self.user, password=self.password)
         for name in ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}={getattr(self, name)}: must be ≥ 0 (0 = off)")
@@ -261,7 +273,8 @@ def stats_reporter(config: LinkConfig):
     from protocol import Keys, Stats, encode
     from services.zsession import open_session
 
-    session = open_session("client", [], [config.connect], 60.0)
+    session = open_session("client", [], [config.connect], 60.0, security=Security(
+        tls_ca=config.tls_ca, user=config.user, password=config.password))
     publisher = session.declare_publisher(Keys(config.run_id).stats("link", 0))
 
     def report(values: dict) -> None:

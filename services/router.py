@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 from services.config import ConfigError, resolve
+from services.security import access_control, read_auth_file
 from services.service_config import DEFAULT_ENDPOINT, ServiceConfig
 from services.zsession import StopSignal, fail, open_for, say
 
@@ -24,11 +26,27 @@ class RouterConfig(ServiceConfig):
     """Zenoh endpoints the router listens on (every service connects here)"""
     connect: tuple[str, ...] = ()
     """other routers to connect to (multi-host setups)"""
+    auth_file: str = ""
+    """user:password dictionary, one pair a line, readable by its owner only: with it, only
+    sessions presenting a listed user and its password may connect"""
+    acl: bool = False
+    """access control (needs --auth-file): default deny, and each user gets only its role's
+    traffic under tpdeb/{run_id}/. Users are roles: replay, learner, actor-{i}, monitor, link
+    (ROLE@RUN_ID for a role of another run sharing this router)"""
 
     def __post_init__(self):
         super().__post_init__()
         if not self.listen:
             raise ConfigError("the router needs at least one --listen endpoint")
+        if self.acl and not self.auth_file:
+            raise ConfigError("--acl needs --auth-file: access rules are per authenticated user")
+        if self.auth_file:
+            users = read_auth_file(self.auth_file)
+            if Path(self.auth_file).stat().st_mode & 0o077:
+                raise ConfigError(f"--auth-file {self.auth_file} holds passwords but others may "
+                                  f"read it: chmod 600 {self.auth_file}")
+            if self.acl:
+                access_control(self.run_id, users)  # every user must be a role
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -38,7 +56,10 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         return fail(PROG, exc)
     stop = StopSignal().install()
-    say(PROG, f"routing on {', '.join(config.listen)}")
+    guards = [name for name, on in (("TLS", config.tls_cert), ("user/password", config.auth_file),
+                                    ("access control", config.acl)) if on]
+    say(PROG, f"routing on {', '.join(config.listen)}"
+              f"{' with ' + ', '.join(guards) if guards else ''}")
     try:
         while not stop.wait(1.0):
             pass

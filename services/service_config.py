@@ -8,6 +8,7 @@ import re
 from dataclasses import dataclass
 
 from services.config import ConfigError
+from services.security import check_settings
 from services.train_config import TrainConfig
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -32,6 +33,22 @@ class ServiceConfig(TrainConfig):
     keep a throttled link from queueing seconds of data ahead of acks and keep-alives"""
     max_message_bytes: int = 16 * 2**20
     """incoming messages larger than this are dropped unread (and counted)"""
+    tls_ca: str = ""
+    """CA certificate (PEM) trusted on tls/ endpoints; the router's certificate must be signed
+    by it (tpdeb-certs DIR writes DIR/ca.pem). Empty: the system's CAs"""
+    tls_cert: str = ""
+    """certificate (PEM) this process presents on its tls/ --listen endpoints, i.e. the
+    router's (tpdeb-certs DIR writes DIR/router.pem)"""
+    tls_key: str = ""
+    """private key of --tls-cert (tpdeb-certs DIR writes DIR/router.key, readable by its owner
+    only)"""
+    user: str = ""
+    """user name this process authenticates to its router with; under access control it is
+    the role: replay, learner, actor-{actor_id}, monitor or link"""
+    password: str = ""
+    """password of --user: set it as TPDEB_PASSWORD, not as a flag (every user of the machine
+    sees a process's arguments in ps). It is kept out of every copy of the config (run dir,
+    checkpoints, TensorBoard)"""
 
     def __post_init__(self):
         super().__post_init__()
@@ -39,6 +56,12 @@ class ServiceConfig(TrainConfig):
             raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
         if self.connect_timeout_s <= 0:
             raise ConfigError(f"connect_timeout_s={self.connect_timeout_s}: must be > 0")
+        check_settings(self.listen, self.connect, self.tls_ca, self.tls_cert, self.tls_key,
+                       self.user, self.password)
+        # Services write their config into the run dir and their checkpoints; the password
+        # moves to an attribute that is not a field, so none of those copies carries it.
+        if self.password:
+            self.secret_password, self.password = self.password, ""
 
 
 @dataclass

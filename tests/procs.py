@@ -15,7 +15,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = {"replay": "services.replay", "learner": "services.learner",
            "actor": "services.actor", "cluster": "services.cluster",
-           "router": "services.router", "link": "services.link"}
+           "router": "services.router", "link": "services.link", "certs": "services.certs"}
 
 
 def free_port() -> int:
@@ -33,10 +33,12 @@ class Procs:
         self.started: list[subprocess.Popen] = []
         self.logs: dict[int, Path] = {}
 
-    def spawn(self, role: str, *args: str, name: str | None = None) -> subprocess.Popen:
+    def spawn(self, role: str, *args: str, name: str | None = None,
+              env: dict[str, str] | None = None) -> subprocess.Popen:
+        """`env`: extra variables (e.g. TPDEB_PASSWORD, which must not appear in argv)."""
         name = name or role
         log = self.log_dir / f"{name}.log"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         with log.open("w") as out:
             proc = subprocess.Popen(
                 [sys.executable, "-m", MODULES[role], *args], cwd=ROOT, stdout=out,

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from services.cluster import make_plan, parse_args
+from services.cluster import RestartPolicy, RestartSettings, make_plan, parse_args
 from services.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -19,9 +19,12 @@ def plan_for(tmp_path, text: str | None = None, *flags: str):
     return make_plan(parse_args([*args, "--run-dir", str(tmp_path / "run")]))
 
 
-def test_default_file_starts_replay_learner_then_two_actors(tmp_path):
+def test_default_file_starts_router_replay_learner_then_two_actors(tmp_path):
     plan = plan_for(tmp_path)
-    assert [s.role for s in plan.services] == ["replay", "learner", "actor"]
+    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor"]
+    assert all(s.restart == RestartPolicy("on-failure") for s in plan.services)
+    assert plan.restarts == RestartSettings(backoff_s=1.0, reset_after_s=60.0, max_restarts=5,
+                                            window_s=120.0, max_backoff_s=30.0)
     assert plan.services[-1].replicas == 2 and plan.train.num_envs == 4
     assert plan.train.env_id == "HalfCheetah-v5"
     assert plan.endpoint.startswith("tcp/127.0.0.1:") and not plan.endpoint.endswith("auto")
@@ -38,6 +41,47 @@ def test_flags_override_the_file(tmp_path):
 BASE = (ROOT / "deploy" / "local.toml").read_text()
 
 
+def test_restart_policies_and_limits_are_read(tmp_path):
+    text = (BASE.replace('restart = "on-failure"\nargs = []\nenv = {}\n\n[services.replay]',
+                         'restart = "always"\nargs = []\nenv = {}\n\n[services.replay]')
+            .replace('depends_on = ["learner"]\nrestart = "on-failure"',
+                     'depends_on = ["learner"]\nrestart = "on-failure:3"')
+            .replace('depends_on = ["replay"]\nrestart = "on-failure"',
+                     'depends_on = ["replay"]\nrestart = "no"')
+            .replace("restart_backoff_s = 1", "restart_backoff_s = 0.25")
+            .replace("max_restarts = 5", "max_restarts = 2"))
+    plan = plan_for(tmp_path, text)
+    policies = {s.role: str(s.restart) for s in plan.services}
+    assert policies == {"router": "always", "replay": "on-failure", "learner": "no",
+                        "actor": "on-failure:3"}
+    assert (plan.restarts.backoff_s, plan.restarts.max_restarts) == (0.25, 2)
+
+
+def test_a_file_without_restart_settings_gets_the_defaults(tmp_path):
+    lines = [line for line in BASE.splitlines()
+             if not line.startswith(("restart", "max_restarts", "crash_loop"))]
+    plan = plan_for(tmp_path, "\n".join(lines))
+    assert all(str(s.restart) == "on-failure" for s in plan.services)
+    assert plan.restarts == RestartSettings()
+
+
+def test_the_router_starts_first_whatever_the_file_order(tmp_path):
+    section = BASE[BASE.index("[services.router]"):BASE.index("[services.replay]")]
+    plan = plan_for(tmp_path, BASE.replace(section, "") + "\n" + section)
+    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor"]
+
+
+def test_a_bad_restart_policy_names_the_value_and_the_choices(tmp_path):
+    text = BASE.replace('depends_on = ["learner"]\nrestart = "on-failure"',
+                        'depends_on = ["learner"]\nrestart = "unless-stopped"')
+    with pytest.raises(ConfigError) as info:
+        plan_for(tmp_path, text)
+    message = str(info.value)
+    assert "[services.actor]" in message and "'unless-stopped'" in message
+    for choice in ('"no"', '"on-failure"', '"on-failure:N"', '"always"'):
+        assert choice in message
+
+
 @pytest.mark.parametrize("text, flags, message", [
     (BASE + "\n[extra]\n", [], "unknown section"),
     (BASE.replace("stop_timeout_s = 20", "stop_timeout = 20"), [], "unknown key"),
@@ -48,6 +92,20 @@ BASE = (ROOT / "deploy" / "local.toml").read_text()
     (BASE, ["--set", "learning_rat=1"], "learning_rat"),
     (BASE, ["--set", "zeta=2"], "zeta=2.0"),
     (BASE, ["--set", "nonsense"], "KEY=VALUE"),
+    (BASE.replace('restart = "on-failure"', 'restart = "on-failure:x"', 1), [],
+     "restart='on-failure:x' is not a restart policy"),
+    (BASE.replace('restart = "on-failure"', "restart = false", 1), [],
+     "restart=False is not a restart policy"),
+    (BASE.replace("max_restarts = 5", "max_restarts = -1"), [], r"max_restarts=-1: expected an"),
+    (BASE.replace("max_restarts = 5", "max_restarts = 2.5"), [], r"max_restarts=2.5"),
+    (BASE.replace("restart_backoff_s = 1", "restart_backoff_s = 0"), [],
+     r"restart_backoff_s=0: expected a number of seconds > 0"),
+    (BASE.replace("crash_loop_window_s = 120", 'crash_loop_window_s = "2m"'), [],
+     "crash_loop_window_s='2m'"),
+    (BASE.replace("[services.router]", "[services.zenohd]"), [], "unknown service 'zenohd'"),
+    (BASE.replace('[services.router]\ncommand = "tpdeb-router"\n',
+                  '[services.router]\ncommand = "tpdeb-router"\ndepends_on = ["replay"]\n'),
+     [], "the router starts first"),
 ])
 def test_mistakes_are_refused_with_the_reason(tmp_path, text, flags, message):
     with pytest.raises(ConfigError, match=message):

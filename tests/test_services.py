@@ -17,23 +17,9 @@ import zenoh
 from protocol import SCHEMA_VERSION, Keys, SampleReply, SampleRequest, Stats, decode, encode
 from services.metrics import read_metrics
 from services.zsession import fetch_spec, open_session
-from tests.procs import Procs, free_port, pids_with
+from tests.procs import pids_with
 
 ENV = "InvertedPendulum-v5"
-
-
-@pytest.fixture
-def procs(tmp_path):
-    p = Procs(tmp_path)
-    yield p
-    p.stop_all()
-    assert not p.leftovers(), "a service outlived its test"
-    assert not pids_with(str(tmp_path)), "a service process outlived its test"
-
-
-@pytest.fixture
-def endpoint():
-    return f"tcp/127.0.0.1:{free_port()}"
 
 
 @pytest.fixture
