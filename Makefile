@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 ARGS ?=
 
 .PHONY: install run serial test lint bench-replay bench-learn bench-throughput bench-bandwidth \
-	bench-fuzz bench-soak clean
+	bench-snapshot bench-fuzz bench-soak clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -45,6 +45,9 @@ bench-throughput: install
 
 bench-bandwidth: install
 	$(BIN)/python bench/bandwidth.py
+
+bench-snapshot: install
+	$(BIN)/python bench/replay_snapshot.py $(ARGS)
 
 # Every protocol fuzz test at 10,000 cases each (ARGS='--examples 100000' for more).
 bench-fuzz: install
