@@ -1,6 +1,8 @@
 """SPEC §1: imports go one way, and the algorithm layer does no I/O."""
 
 import ast
+import subprocess
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,3 +44,12 @@ def test_protocol_imports_only_numpy_msgpack_zstandard_and_pure_stdlib():
 def test_layout_directories_exist():
     for name in ("tpdeb_core", "protocol", "services", "deploy", "tests", "bench"):
         assert (ROOT / name).is_dir(), name
+
+
+def test_router_link_and_launcher_start_without_torch():
+    # they only route, shape or supervise: torch would add over 200 MiB to each
+    code = ("import sys, services.router, services.link, services.cluster; "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "False"
