@@ -191,11 +191,12 @@ def non_decreasing(values) -> bool:
 
 
 @pytest.mark.slow
-def test_cluster_survives_kill9_of_an_actor_the_learner_and_the_replay(procs, tmp_path):
+def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_router(
+        procs, tmp_path):
     run_dir = tmp_path / "run"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cluster_file = tmp_path / "cluster.toml"
-    cluster_file.write_text(CLUSTER_FILE.format(endpoint=endpoint, env=ENV, steps=60000))
+    cluster_file.write_text(CLUSTER_FILE.format(endpoint=endpoint, env=ENV, steps=80000))
     cluster = procs.spawn("cluster", "--config", str(cluster_file), "--run-dir", str(run_dir))
     procs.wait_for_line(cluster, "[learner] tpdeb-learner: run", timeout_s=120)
     session = open_session("client", [], [endpoint], connect_timeout_s=30)
@@ -245,6 +246,17 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_and_the_replay(procs, tm
         assert first is not None, "no acknowledgement after the replay restarted"
         recovery["replay"] = first - killed
 
+        # the router: every service reconnects to its replacement, acks flow again
+        time.sleep(2)
+        os.kill(service_pid(run_dir, "tpdeb-router"), signal.SIGKILL)
+        killed = time.monotonic()
+        deadline = killed + 90
+        while time.monotonic() < deadline and acks.first_after(killed + 0.05) is None:
+            time.sleep(0.2)
+        first = acks.first_after(killed + 0.05)
+        assert first is not None, "no acknowledgement after the router restarted"
+        recovery["router"] = first - killed
+
         assert cluster.wait(300) == 0, procs.output(cluster)[-3000:]
         learner_versions = [v for _, v in stats.series("learner", "param_version")]
         assert non_decreasing(learner_versions), "a parameter version went back"
@@ -254,7 +266,7 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_and_the_replay(procs, tm
     finally:
         session.close()
     out = procs.output(cluster)
-    for name in ("actor-0", "learner", "replay"):
+    for name in ("actor-0", "learner", "replay", "router"):
         assert f"{name} exited with code -9; restarting" in out, out[-3000:]
     state = stored_state(run_dir)
     for (actor, incarnation, seq) in acked_before:
