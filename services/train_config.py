@@ -9,14 +9,11 @@ import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from services.config import ConfigError
+from tpdeb_core.loss_config import LossConfig
 from tpdeb_core.rate_limiter import RateLimiter
 from tpdeb_core.replay import PRIORITY_MODES
-
-if TYPE_CHECKING:
-    from tpdeb_core.learner import LossConfig
 
 
 @dataclass
@@ -141,9 +138,6 @@ class TrainConfig:
         self.rate_limiter()  # refuses deadlocking replay-ratio settings
 
     def loss_config(self) -> LossConfig:
-        # Imported here: the router, the link and the launcher read this config too, and
-        # should not pay for torch (over 200 MiB) to do so.
-        from tpdeb_core.learner import LossConfig
         names = {f.name for f in dataclasses.fields(LossConfig)}
         try:
             return LossConfig(**{k: v for k, v in dataclasses.asdict(self).items() if k in names})
