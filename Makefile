@@ -49,7 +49,8 @@ bench-bandwidth: install
 bench-snapshot: install
 	$(BIN)/python bench/replay_snapshot.py $(ARGS)
 
-# Every protocol fuzz test at 10,000 cases each (ARGS='--examples 100000' for more).
+# Every protocol fuzz test at 10,000 cases, per message type where a test runs per type
+# (ARGS="--examples 100000" for more).
 bench-fuzz: install
 	$(BIN)/python bench/fuzz.py $(ARGS)
 

@@ -1,11 +1,12 @@
 """Fuzzing benchmark: every hypothesis fuzz test of the wire format at bench scale.
 
-    python bench/fuzz.py                     # 10,000 cases per fuzz test
+    python bench/fuzz.py                     # 10,000 cases per fuzz test and message type
     python bench/fuzz.py --examples 100000   # longer
 
 The fuzz tests of `tests/test_protocol.py` (every `@given` test there) run through pytest with
 `TPDEB_FUZZ_EXAMPLES` set to `--examples`, so the strategies and properties are exactly the
-suite's. Every case goes through the tests' `decode_or_error`; this script wraps it to count
+suite's. The tests that run once per message type get the full count for each type, so every
+message decoder sees at least `--examples` cases of its own. Every case goes through the tests' `decode_or_error`; this script wraps it to count
 the cases and to record crashes instead of letting the first one end the test, so the crash count
 covers all cases (hypothesis does not shrink them then; the smallest crashing input of each kind
 is printed to reproduce it). A crash is any exception from `decode` other than `DecodeError`,
