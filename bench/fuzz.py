@@ -6,12 +6,13 @@
 The fuzz tests of `tests/test_protocol.py` (every `@given` test there) run through pytest with
 `TPDEB_FUZZ_EXAMPLES` set to `--examples`, so the strategies and properties are exactly the
 suite's. The tests that run once per message type get the full count for each type, so every
-message decoder sees at least `--examples` cases of its own. Every case goes through the tests' `decode_or_error`; this script wraps it to count
-the cases and to record crashes instead of letting the first one end the test, so the crash count
-covers all cases (hypothesis does not shrink them then; the smallest crashing input of each kind
-is printed to reproduce it). A crash is any exception from `decode` other than `DecodeError`,
-including one caught by the codec's own safety net (a `DecodeError` saying "internal error",
-raised from another exception): a service would survive it, but a rule tripped over its input.
+message decoder sees at least `--examples` cases of its own. Every case goes through the tests'
+`decode_or_error`; this script wraps it to count the cases and to record crashes instead of
+letting the first one end the test, so the crash count covers all cases (hypothesis does not
+shrink them then; the smallest crashing input of each kind is printed to reproduce it). A crash is
+any exception from `decode` other than `DecodeError`, including one caught by the codec's own
+safety net (a `DecodeError` saying "internal error", raised from another exception): a service
+would survive it, but a rule tripped over its input.
 
 Prints, per fuzz test, the cases, crashes and seconds, with the total, and then how many cases
 reached each message type's body decoder (the rest stopped at the envelope: msgpack, version,
