@@ -27,6 +27,7 @@ from pathlib import Path
 import torch
 
 from services.config import ConfigError
+from services.persistence import fsync_dir
 
 PERIODIC, FINAL = "ckpt", "final"
 _NAME = re.compile(r"(ckpt|final)_(\d+)_(\d+)\.pt")
@@ -38,15 +39,6 @@ VERSION_BLOCK = 1000
 
 def checkpoint_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "checkpoints"
-
-
-def _fsync_dir(directory: Path) -> None:
-    # The rename is durable only once the directory entry is on disk.
-    fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def write_atomic(path: str | Path, write: Callable) -> Path:
@@ -63,7 +55,7 @@ def write_atomic(path: str | Path, write: Callable) -> Path:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
     return path
 
 

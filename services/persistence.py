@@ -66,7 +66,8 @@ def read_records(path: Path, strict: bool) -> Iterator[bytes]:
             yield payload
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
+    """Make a rename or a new file in `path` durable: the directory entry must reach the disk."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -158,7 +159,7 @@ class ReplayPersistence:
             self._wal.close()
         self._segment += 1
         self._wal = (self.dir / _SEGMENT.format(self._segment)).open("ab")
-        _fsync_dir(self.dir)
+        fsync_dir(self.dir)
 
     def log(self, payload: bytes) -> None:
         if self._wal is None:
@@ -227,7 +228,7 @@ class ReplayPersistence:
             with (tmp / MARKER).open("rb") as f:
                 os.fsync(f.fileno())
             os.replace(tmp, final)
-            _fsync_dir(self.dir)
+            fsync_dir(self.dir)
             self._prune()
             self.snapshots_written += 1
             self.last_snapshot_s = time.perf_counter() - started
