@@ -42,6 +42,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from procfs import cmdline, descendants, proc_table, rss_kib, service_name
 
 from protocol import DecodeError, Keys, Params, decode, encode
 from services.envs import make_vector_env, space_dims
@@ -189,66 +190,9 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def proc_table() -> dict[int, int]:
-    """pid → ppid of every live process."""
-    table = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat") as f:
-                stat = f.read()
-        except OSError:
-            continue
-        fields = stat[stat.rfind(")") + 2:].split()
-        table[int(entry.name)] = int(fields[1])
-    return table
-
-
-def descendants(root: int) -> list[int]:
-    table = proc_table()
-    children: dict[int, list[int]] = {}
-    for pid, ppid in table.items():
-        children.setdefault(ppid, []).append(pid)
-    out, todo = [], [root]
-    while todo:
-        pid = todo.pop()
-        if pid in table:
-            out.append(pid)
-        todo.extend(children.get(pid, []))
-    return out
-
-
-def cmdline(pid: int) -> str:
-    try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().replace(b"\0", b" ").decode(errors="replace")
-    except OSError:
-        return ""
-
-
-def rss_kib(pid: int) -> int | None:
-    try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-    except OSError:
-        return None
-    return 0  # a zombie has no VmRSS line
-
-
-def service_name(pid: int, root: int) -> str:
-    if pid == root:
-        return "cluster"
-    text = cmdline(pid)
-    for role in ("replay", "learner", "actor"):
-        if f"tpdeb-{role}" in text or f"services.{role}" in text:
-            if role == "actor":
-                match = re.search(r"--actor-id (\d+)", text)
-                return f"actor-{match.group(1)}" if match else "actor"
-            return role
-    return "other"
+def role_of(pid: int, root: int) -> str:
+    """The service a process of the measured cluster is ("cluster" for the launcher)."""
+    return "cluster" if pid == root else service_name(cmdline(pid)) or "other"
 
 
 class RssSampler(threading.Thread):
@@ -271,9 +215,9 @@ class RssSampler(threading.Thread):
         while not self.done.is_set():
             now = time.perf_counter()
             if now - last_scan >= 1.0:
-                for pid in descendants(self.root):
+                for pid in [self.root, *descendants(self.root)]:
                     if pid not in self.names:
-                        self.names[pid] = service_name(pid, self.root)
+                        self.names[pid] = role_of(pid, self.root)
                 last_scan = now
             total, by_service = 0, {}
             for pid, name in list(self.names.items()):
@@ -354,11 +298,11 @@ def kill_leftovers(marker: str) -> list[str]:
     """SIGTERM, then SIGKILL, live processes whose command line contains `marker`."""
     def find() -> list[int]:
         me = os.getpid()
-        return [pid for pid in proc_table() if pid != me and marker in cmdline(pid)
+        return [pid for pid in proc_table() if pid != me and marker in " ".join(cmdline(pid))
                 and rss_kib(pid) is not None]
 
     found = find()
-    described = [f"{pid}: {cmdline(pid)[:120]}" for pid in found]
+    described = [f"{pid}: {' '.join(cmdline(pid))[:120]}" for pid in found]
     for pid in found:
         with contextlib.suppress(ProcessLookupError):
             os.kill(pid, signal.SIGTERM)
