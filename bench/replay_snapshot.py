@@ -124,10 +124,9 @@ def run(uniform_steps: int, seconds: float) -> dict:
         server.persistence.sync()
         idle = time_ops(server, payloads, seconds)
         server.snapshot(wait=True)  # the first one also compacts the fill's log
-        capture_ms = []
         started = time.perf_counter()
         server.snapshot()
-        capture_ms.append(server.persistence.last_capture_ms)
+        capture_ms = server.persistence.last_capture_ms
         during = time_ops(server, payloads, 0, until=lambda: server.persistence.writing)
         write_s = time.perf_counter() - started
         snapshot_dir = sorted((Path(tmp) / "replay").glob("snapshot-*"))[-1]
@@ -139,7 +138,7 @@ def run(uniform_steps: int, seconds: float) -> dict:
         assert len(restored.replay) == len(server.replay), "restore lost fragments"
         restored.persistence.close()
     return {"uniform_steps": uniform_steps, "fragments": len(server.replay),
-            "capture_ms": capture_ms[0], "write_s": write_s, "size_mb": size_mb,
+            "capture_ms": capture_ms, "write_s": write_s, "size_mb": size_mb,
             "ingest_idle": idle[0], "ingest_during": during[0],
             "sample_idle": idle[1], "sample_during": during[1], "restore_s": restore_s}
 

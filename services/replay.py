@@ -69,6 +69,7 @@ class SeqWindow:
         return self.low, sorted(self.above)
 
 
+SNAPSHOT_FORMAT = 1  # of what snapshot() saves; a restore refuses any other
 MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
 
 
@@ -288,21 +289,20 @@ class ReplayServer:
             return False  # the previous one is still being written: try again next interval
         started = time.perf_counter()
         state = self.replay.state_dict()
-        items = state.pop("slot_items")
-        state["slot_items"] = list(range(len(items)))
-        uniform = state.pop("uniform")
-        state["uniform"] = [(key, len(items) + i, steps) for i, (key, _, steps)
-                            in enumerate(uniform)]
-        items.extend(item for _, item, _ in uniform)
-        saved = {"format": 1, "env_id": self.spec.env_id, "obs_dim": self.spec.obs_dim,
-                 "act_dim": self.spec.act_dim, "replay": state,
+        # The items (messages) are written one by one apart from the rest: B_p's in slot order,
+        # then B_u's oldest first (see _load_state).
+        items = state.pop("slot_items") + [item for _, item, _ in state["uniform"]]
+        state["uniform"] = [(key, steps) for key, _, steps in state["uniform"]]
+        saved = {"format": SNAPSHOT_FORMAT, "env_id": self.spec.env_id,
+                 "obs_dim": self.spec.obs_dim, "act_dim": self.spec.act_dim, "replay": state,
                  "limiter": self.limiter.state_dict(), "inserted_steps": self.inserted_steps,
                  "samples_served": self.samples_served,
                  "priority_updates": self.priority_updates,
                  "ledgers": {a: ledger.state() for a, ledger in self.ledgers.items()}}
         if self.persistence.error is not None:
             say(PROG, f"a snapshot failed ({self.persistence.error}); the log still holds "
-                      "every fragment")
+                      f"every fragment, but grows until one succeeds: check free space and "
+                      f"permissions in {self.persistence.dir}")
             self.persistence.error = None
         started_write = self.persistence.snapshot(saved, items, encode, wait=wait)
         self.persistence.last_capture_ms = 1e3 * (time.perf_counter() - started)
@@ -310,14 +310,20 @@ class ReplayServer:
         return started_write
 
     def _load_state(self, saved: dict) -> None:
+        if saved.get("format") != SNAPSHOT_FORMAT:
+            raise ConfigError(f"the replay snapshot in the run dir has format "
+                              f"{saved.get('format')!r}, this version reads {SNAPSHOT_FORMAT}: "
+                              "restore it with the version that wrote it, or --restore never")
         for name in ("env_id", "obs_dim", "act_dim"):
             if saved[name] != getattr(self.spec, name):
                 raise ConfigError(f"the replay state in the run dir is for {name}="
                                   f"{saved[name]!r}, this run has {getattr(self.spec, name)!r}:"
                                   " use another --run-dir, or --restore never")
         state, items = saved["replay"], saved["items"]
-        state["slot_items"] = [items[i] for i in state["slot_items"]]
-        state["uniform"] = [(key, items[i], steps) for key, i, steps in state["uniform"]]
+        prioritized = len(state["slots"])
+        state["slot_items"] = items[:prioritized]
+        state["uniform"] = [(key, item, steps) for (key, steps), item
+                            in zip(state["uniform"], items[prioritized:], strict=True)]
         try:
             self.replay.load_state_dict(state)
         except ValueError as exc:
