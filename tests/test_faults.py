@@ -54,6 +54,15 @@ class AckLog:
             later = [when for when in self.seen.values() if when > t]
         return min(later) if later else None
 
+    def wait_after(self, t: float, what: str, timeout_s: float = 90) -> float:
+        """When the first acknowledgement after `t` was seen (waiting for it)."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and self.first_after(t) is None:
+            time.sleep(0.2)
+        first = self.first_after(t)
+        assert first is not None, f"no acknowledgement after {what}"
+        return first
+
 
 def stored_state(run_dir, spec_env=ENV):
     """The replay's final state as its next restart would load it."""
@@ -239,23 +248,13 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
         os.kill(service_pid(run_dir, "tpdeb-replay"), signal.SIGKILL)
         killed = time.monotonic()
         acked_before = acks.snapshot()
-        deadline = killed + 90
-        while time.monotonic() < deadline and acks.first_after(killed + 0.05) is None:
-            time.sleep(0.2)
-        first = acks.first_after(killed + 0.05)
-        assert first is not None, "no acknowledgement after the replay restarted"
-        recovery["replay"] = first - killed
+        recovery["replay"] = acks.wait_after(killed + 0.05, "the replay restarted") - killed
 
         # the router: every service reconnects to its replacement, acks flow again
         time.sleep(2)
         os.kill(service_pid(run_dir, "tpdeb-router"), signal.SIGKILL)
         killed = time.monotonic()
-        deadline = killed + 90
-        while time.monotonic() < deadline and acks.first_after(killed + 0.05) is None:
-            time.sleep(0.2)
-        first = acks.first_after(killed + 0.05)
-        assert first is not None, "no acknowledgement after the router restarted"
-        recovery["router"] = first - killed
+        recovery["router"] = acks.wait_after(killed + 0.05, "the router restarted") - killed
 
         assert cluster.wait(300) == 0, procs.output(cluster)[-3000:]
         learner_versions = [v for _, v in stats.series("learner", "param_version")]

@@ -3,6 +3,8 @@ and damaged files."""
 
 from __future__ import annotations
 
+import threading
+
 import pytest
 
 from services.persistence import MARKER, ReplayPersistence, append_record, read_records
@@ -108,14 +110,16 @@ def test_old_snapshots_and_covered_log_segments_are_pruned(tmp_path):
 
 def test_a_snapshot_in_progress_is_not_started_twice(tmp_path):
     p = ReplayPersistence(tmp_path)
-    slow = ["x"] * 2000
+    release = threading.Event()
 
-    def slow_encode(item):
-        return item.encode() * 1000
+    def held_encode(item):  # the first snapshot's writer waits here until released
+        release.wait(10)
+        return item.encode()
 
-    assert p.snapshot({"n": 1}, slow, slow_encode)
+    assert p.snapshot({"n": 1}, ["x"], held_encode)
     assert p.writing
     assert not p.snapshot({"n": 2}, [], encode)  # refused, not queued
+    release.set()
     p.close()
     assert p.snapshots_written == 1
 
