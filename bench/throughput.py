@@ -162,18 +162,17 @@ def bench_learner(config: TrainConfig, spec, fragments, seconds: float, threads:
     keys = np.arange(b, dtype=np.int64)
     weights = np.ones(b, np.float32)
     from_prioritized = np.arange(b) < int(round(config.zeta * b))
-    step_index = np.zeros(b, np.int64)
 
     def batch():
         return [fragments[i] for i in rng.choice(len(fragments), b, replace=False)]
 
     for _ in range(10):  # warm-up
-        learner.step(batch(), keys, weights, from_prioritized, step_index)
+        learner.step(batch(), keys, weights, from_prioritized)
     updates, busy, start = 0, 0.0, time.perf_counter()
     while time.perf_counter() - start < seconds:
         picked = batch()
         t = time.perf_counter()
-        learner.step(picked, keys, weights, from_prioritized, step_index)
+        learner.step(picked, keys, weights, from_prioritized)
         busy += time.perf_counter() - t
         updates += 1
     elapsed = time.perf_counter() - start

@@ -159,9 +159,12 @@ class SampleReply:
     keys: np.ndarray = wire(Array(I8, "B", ge=0))
     weights: np.ndarray = wire(Array(F4, "B", ge=0.0))  # importance weights, 1.0 for uniform
     from_prioritized: np.ndarray = wire(Array(B1, "B"))
-    step_index: np.ndarray = wire(Array(I8, "B", ge=-1))  # drawn step in "step" mode, else -1
+    # "step" mode: per-step loss weights of each fragment (Σ of the importance weights of the
+    # transitions drawn at that step); None in the other modes
+    step_weights: np.ndarray | None = wire(OrNone(Array(F4, "B T", ge=0.0)))
     fragments: list[Trajectory] = wire(ListOf(Nested(Trajectory), dim="B"))
     inserted_steps: int = wire(Int())
+    steps_drawn: int = wire(Int(ge=0))  # transitions the batch stands for (the loss normaliser)
     obs_moments: Moments | None = wire(OrNone(Nested(Moments)))
     ret_moments: Moments | None = wire(OrNone(Nested(Moments)))
     reason: str = wire(Str(), default="")
@@ -170,8 +173,7 @@ class SampleReply:
     def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0) -> SampleReply:
         """The empty reply: no batch, and why (e.g. "rate limiter")."""
         return cls(request_id, False, np.zeros(0, np.int64), np.zeros(0, np.float32),
-                   np.zeros(0, bool), np.zeros(0, np.int64), [], inserted_steps, None, None,
-                   reason)
+                   np.zeros(0, bool), None, [], inserted_steps, 0, None, None, reason)
 
     def cross_check(self, scope: Scope, where: str) -> None:
         if not self.ready and (self.fragments or not self.reason):
@@ -180,9 +182,6 @@ class SampleReply:
         shapes = {(f.obs.shape, f.actions.shape) for f in self.fragments}
         if len(shapes) > 1:  # the learner stacks them into one [B, T] batch
             raise DecodeError("shape", f"{where}.fragments differ in shape: {sorted(shapes)}")
-        steps = np.array([f.num_steps for f in self.fragments], dtype=np.int64)
-        if (self.step_index >= steps).any():
-            raise DecodeError("value", f"{where}.step_index beyond its fragment's steps")
         obs_dim = scope.get("obs_dim")
         if self.obs_moments is not None and obs_dim is not None \
                 and self.obs_moments.mean.shape != (obs_dim,):

@@ -33,6 +33,7 @@ import zenoh
 from protocol import Control, DecodeError, Keys, Stats, decode
 from services.config import ConfigError, coerce, load_toml, to_toml
 from services.envs import make_vector_env
+from services.presets import layer, shown
 from services.security import SECURITY_KEYS, ClusterSecurity
 from services.service_config import ServiceConfig
 from services.train_config import TrainConfig
@@ -293,8 +294,10 @@ def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:
 
 
 def coerce_train(values: dict) -> TrainConfig:
-    """Values from TOML/flags (strings allowed) → a validated TrainConfig."""
-    return TrainConfig(**{k: coerce(TrainConfig, k, v, "train") for k, v in values.items()})
+    """Values from TOML/flags (strings allowed) over the task's preset and the algorithm's
+    settings → a validated TrainConfig."""
+    return TrainConfig(**layer(TrainConfig, {k: coerce(TrainConfig, k, v, "train")
+                                             for k, v in values.items()}))
 
 
 def resolve_command(command: str) -> list[str]:
@@ -613,6 +616,7 @@ class Cluster:
         say(f"[{PROG}] run {self.plan.run_id}: {self.plan.train.env_id}, "
             f"{self.plan.train.total_timesteps:,} steps, seed {self.plan.train.seed}; "
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
+        say(f"[{PROG}] algo {self.plan.train.algo}; preset: {shown(self.plan.train.preset)}")
         keys = Keys(self.plan.run_id)
         try:
             router, *others = self.plan.services

@@ -145,6 +145,10 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, section: s
             values[name] = coerce(cls, name, env_value, ENV_PREFIX + name.upper())
     for name, value in args.items():
         values[name] = coerce(cls, name, value, "--" + name.replace("_", "-"))
+    if "preset" in names:
+        from services.presets import layer
+
+        values = layer(cls, values)
     try:
         return cls(**values)
     except ConfigError:

@@ -57,6 +57,7 @@ from services.checkpoint import (
 )
 from services.config import ConfigError, resolve, to_toml
 from services.metrics import MetricsWriter
+from services.presets import shown
 from services.serial import hyperparameter_table, seed_everything
 from services.service_config import LearnerServiceConfig
 from services.wire import finite_values, message_to_fragment, model_for, params_message
@@ -107,6 +108,7 @@ class LearnerService:
         self.actors_heard: set[str] = set()  # actors whose stats arrived
         self.actor_stats: dict[str, dict] = {}  # the latest of each (delivery counters)
         self.trained_keys: set[int] = set()
+        self.trained_floor = -1  # keys ≤ this are no longer remembered (see train_on)
         self.replay_items = config.prioritized_capacity + (
             config.uniform_capacity_steps // config.fragment_len)
         self.lag_sum, self.lag_count = 0.0, 0
@@ -265,7 +267,7 @@ class LearnerService:
         for fetcher in self.fetchers:
             fetcher.start()
         say(PROG, f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
-                  f"steps; run dir {self.run_dir}")
+                  f"steps ({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
         start = last_log = last_stats = last_checkpoint = time.monotonic()
         first_step = last_step = stats_step = self.global_step
         checkpointed_updates = self.learner.updates
@@ -310,7 +312,7 @@ class LearnerService:
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
-                                   batch.step_index)
+                                   batch.step_weights, batch.steps_drawn)
         self.update_s += time.perf_counter() - started
         if len(result.priority_keys):
             self.priorities_publisher.put(encode(PriorityUpdate(
@@ -325,16 +327,18 @@ class LearnerService:
             + float(np.mean(ages))
         # Policy lag: how many versions behind the learner a fragment's behaviour policy was
         # when the learner first trained on it (replay keys grow with insertion order). Across
-        # a restart the versions the restarted learner skipped count too.
+        # a restart the versions the restarted learner skipped count too. Keys at or below the
+        # floor have been forgotten: the prioritized buffer may still hold (and serve) them, but
+        # they are not new, and counting them as new would add their whole age to the lag.
         fresh = [(key, age) for key, age in zip(batch.keys.tolist(), ages, strict=True)
-                 if key not in self.trained_keys]
+                 if key > self.trained_floor and key not in self.trained_keys]
         for key, age in fresh:
             self.trained_keys.add(key)
             self.lag_sum += age
             self.lag_count += 1
         if len(self.trained_keys) > 4 * self.replay_items:  # forget keys long evicted
-            newest = max(self.trained_keys)
-            self.trained_keys = {k for k in self.trained_keys if k > newest - 2 * self.replay_items}
+            self.trained_floor = max(self.trained_keys) - 2 * self.replay_items
+            self.trained_keys = {k for k in self.trained_keys if k > self.trained_floor}
         self.count += 1
 
     def drain_stats(self) -> None:

@@ -43,7 +43,6 @@ from services.service_config import ReplayServiceConfig
 from services.wire import finite_values, message_to_fragment, run_spec
 from services.zsession import RateLimitedLog, StopSignal, fail, open_for, say
 from tpdeb_core.model import batch_moments, merge_moments
-from tpdeb_core.replay import DualReplay
 
 PROG = "tpdeb-replay"
 _NO_MOMENTS = (0.0, 0.0, 0.0)
@@ -110,9 +109,7 @@ class ReplayServer:
     def __init__(self, config: ReplayServiceConfig, spec, session, stop: StopSignal):
         self.config, self.spec, self.session, self.stop = config, spec, session, stop
         self.keys = Keys(config.run_id)
-        self.replay = DualReplay(
-            config.prioritized_capacity, config.uniform_capacity_steps, zeta=config.zeta,
-            alpha=config.alpha, seed=config.seed, priority_mode=config.priority_mode)
+        self.replay = config.make_replay()
         self.limiter = config.rate_limiter()
         self.inbox: queue.Queue = queue.Queue()
         self.pending: deque[tuple[Trajectory, bytes]] = deque()
@@ -376,21 +373,16 @@ class ReplayServer:
             request_id=request.request_id, ready=True, keys=sample.keys.astype(np.int64),
             weights=sample.weights.astype(np.float32),
             from_prioritized=sample.from_prioritized.astype(bool),
-            step_index=sample.step_index.astype(np.int64),
+            step_weights=sample.step_weights,
             fragments=list(sample.items),
-            inserted_steps=self.inserted_steps,
+            inserted_steps=self.inserted_steps, steps_drawn=sample.steps_drawn,
             obs_moments=Moments(*self.obs_moments) if self.obs_moments[0] else None,
             ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None)
         self.obs_moments = self.ret_moments = _NO_MOMENTS
         return reply
 
     def _not_ready(self, request: SampleRequest, reason: str) -> SampleReply:
-        empty = np.zeros(0, np.int64)
-        return SampleReply(
-            request_id=request.request_id, ready=False, keys=empty,
-            weights=np.zeros(0, np.float32), from_prioritized=np.zeros(0, bool),
-            step_index=empty, fragments=[], inserted_steps=self.inserted_steps,
-            obs_moments=None, ret_moments=None, reason=reason)
+        return SampleReply.not_ready(request.request_id, reason, self.inserted_steps)
 
     def _reply(self, query, reply: SampleReply) -> None:
         try:

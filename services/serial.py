@@ -24,11 +24,11 @@ from services.checkpoint import save_training
 from services.config import ConfigError, resolve, to_toml
 from services.envs import make_vector_env, space_dims
 from services.metrics import MetricsWriter
+from services.presets import shown
 from services.train_config import TrainConfig
 from tpdeb_core.fragments import Collector
 from tpdeb_core.learner import Learner
 from tpdeb_core.model import ActorCritic
-from tpdeb_core.replay import DualReplay
 
 
 def seed_everything(seed: int) -> None:
@@ -59,9 +59,7 @@ class SerialRunner:
         self.collector = Collector(
             self.envs, copy.deepcopy(self.model), config.fragment_len, config.gamma, low, high,
             seed=config.seed)
-        self.replay = DualReplay(
-            config.prioritized_capacity, config.uniform_capacity_steps, zeta=config.zeta,
-            alpha=config.alpha, seed=config.seed, priority_mode=config.priority_mode)
+        self.replay = config.make_replay()
         self.limiter = config.rate_limiter()
         self.run_dir = config.default_run_dir()
         self.metrics = MetricsWriter(self.run_dir)
@@ -96,7 +94,8 @@ class SerialRunner:
         self.limiter.on_sample(cfg.batch_steps)
         start = time.perf_counter()
         result = self.learner.step(sample.items, sample.keys, sample.weights,
-                                   sample.from_prioritized, sample.step_index)
+                                   sample.from_prioritized, sample.step_weights,
+                                   sample.steps_drawn)
         self.update_time_s += time.perf_counter() - start
         self.replay.update_priorities(result.priority_keys, result.priorities)
         self.sample_lag_sum += float(np.mean(
@@ -112,7 +111,7 @@ class SerialRunner:
         (self.run_dir / "config.toml").write_text(to_toml(cfg))
         self.metrics.text("hyperparameters", hyperparameter_table(cfg))
         self.say(f"run dir {self.run_dir} | {cfg.env_id} | {cfg.total_timesteps:,} steps "
-                 f"| seed {cfg.seed}")
+                 f"| seed {cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)}")
         start = last_log = time.perf_counter()
         last_step = 0
         interrupted = False

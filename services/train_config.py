@@ -13,13 +13,21 @@ from pathlib import Path
 from services.config import ConfigError
 from tpdeb_core.loss_config import LossConfig
 from tpdeb_core.rate_limiter import RateLimiter
-from tpdeb_core.replay import PRIORITY_MODES
+from tpdeb_core.replay import PRIORITY_MODES, RETENTIONS, DualReplay
+
+ALGOS = ("tpdeb", "impact", "ppo-per")
 
 
 @dataclass
 class TrainConfig:
     exp_name: str = "tpdeb"
     """name of this experiment, part of the default run directory"""
+    algo: str = "tpdeb"
+    """tpdeb | impact | ppo-per: the algorithm (the paper's method or one of its baselines);
+    impact and ppo-per fix the settings that define them"""
+    preset: str = "auto"
+    """auto: the task's preset deploy/presets/{env_id}.toml when there is one | none | a TOML
+    file; settings given by --config, TPDEB_* or flags override the preset's"""
     env_id: str = "HalfCheetah-v5"
     """gymnasium environment id (MuJoCo, continuous actions)"""
     seed: int = 1
@@ -58,6 +66,9 @@ class TrainConfig:
     """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
     priority_kappa: float = 0.0
     """weight of the fragment's mean |scaled return| added to its priority"""
+    replay_retention: str = "priority"
+    """priority: a full prioritized buffer gives up its lowest-priority fragment (TPDEB) | fifo:
+    its oldest (a FIFO still sampled by priority, the PPO+PER baseline)"""
     gamma: float = 0.99
     """discount factor"""
     rho_bar: float = 1.0
@@ -68,6 +79,11 @@ class TrainConfig:
     """V-trace ρ̄ for the policy-gradient advantage"""
     rho_target_bar: float = 2.0
     """IMPACT: clip of μ/π_target in the surrogate ratio"""
+    clip_anchor: str = "target"
+    """target: the surrogate's ratio is taken to the target policy (IMPACT, TPDEB) | behaviour:
+    PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
+    vtrace_lambda: float = 1.0
+    """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
     clip_coef: float = 0.2
     """surrogate clipping ε"""
     kl_coef: float = 0.01
@@ -116,6 +132,9 @@ class TrainConfig:
             (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
             (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
             (self.alpha >= 0.0, "alpha", "must be ≥ 0"),
+            (self.algo in ALGOS, "algo", f"must be one of {', '.join(ALGOS)}"),
+            (self.replay_retention in RETENTIONS, "replay_retention",
+             f"must be one of {', '.join(RETENTIONS)}"),
             (self.priority_mode in PRIORITY_MODES, "priority_mode",
              f"must be one of {', '.join(PRIORITY_MODES)}"),
             (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
@@ -164,6 +183,12 @@ class TrainConfig:
             )
         except ValueError as exc:
             raise ConfigError(f"replay ratio settings: {exc}") from None
+
+    def make_replay(self) -> DualReplay:
+        return DualReplay(
+            self.prioritized_capacity, self.uniform_capacity_steps, zeta=self.zeta,
+            alpha=self.alpha, seed=self.seed, priority_mode=self.priority_mode,
+            retention=self.replay_retention)
 
     def default_run_dir(self) -> Path:
         if self.run_dir:

@@ -79,7 +79,7 @@ def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
         model.load_state_dict(state)
         learner = Learner(model, LossConfig(priority_mode=mode))
         results[mode] = learner.step(fragments, np.arange(6), np.ones(6), np.ones(6, bool),
-                                     step_index=np.zeros(6, np.int64))
+                                     step_weights=np.ones((6, 8), np.float32))
     for total, per_step in zip(results["trajectory"].priorities, results["step"].priorities,
                                strict=True):
         assert per_step.shape == (8,)

@@ -82,12 +82,22 @@ def test_tree_capacity_and_slot_checks():
 
 
 def sample_counts(replay, num_batches, batch_size, beta=1.0):
-    """Counts of (key, step_index) over many batches."""
+    """Counts of (key, -1) over many batches (a row per drawn item)."""
     counts = {}
     for _ in range(num_batches):
         batch = replay.sample(batch_size, beta)
-        for key, step in zip(batch.keys.tolist(), batch.step_index.tolist(), strict=True):
-            counts[key, step] = counts.get((key, step), 0) + 1
+        assert batch.step_weights is None
+        for key in batch.keys.tolist():
+            counts[key, -1] = counts.get((key, -1), 0) + 1
+    return counts
+
+
+def draw_counts(replay, num_draws):
+    """Step mode: counts of (key, step) over `num_draws` single-transition draws."""
+    slots, steps, _ = replay._draw_steps(num_draws, 1.0)
+    counts = {}
+    for key, step in zip(replay._slot_keys[slots].tolist(), steps.tolist(), strict=True):
+        counts[key, step] = counts.get((key, step), 0) + 1
     return counts
 
 
@@ -128,7 +138,7 @@ def test_step_mode_frequencies_are_per_step_priority_power_alpha():
     }
     total = sum(mass.values())
     probabilities = {cell: m / total for cell, m in mass.items()}
-    assert_frequencies(sample_counts(replay, 1500, 64), probabilities)
+    assert_frequencies(draw_counts(replay, 96_000), probabilities)
 
 
 def test_updates_change_frequencies_and_unknown_keys_are_ignored():
@@ -200,10 +210,51 @@ def test_step_weights_match_direct_formula(beta):
     for priorities in step_priorities:
         replay.insert(None, priorities, 3)
     flat = np.concatenate(step_priorities)  # unit = step: N = 6 steps held in B_p
-    batch = replay.sample(500, beta)
-    expected = direct_weights(flat, alpha, beta)[batch.keys * 3 + batch.step_index]
-    np.testing.assert_allclose(batch.weights, expected, rtol=1e-6)
-    assert batch.weights.max() == 1.0
+    slots, steps, weights = replay._draw_steps(500, beta)
+    expected = direct_weights(flat, alpha, beta)[replay._slot_keys[slots] * 3 + steps]
+    np.testing.assert_allclose(weights, expected, rtol=1e-6)
+    assert weights.max() == 1.0
+
+
+def test_step_mode_batch_is_t_draws_per_prioritized_item_grouped_by_fragment():
+    replay = DualReplay(3, 64, zeta=0.5, alpha=1.0, seed=21, priority_mode="step")
+    for key, priorities in enumerate([[1.0, 0.0, 0.0, 0.0], [0.0, 2.0, 0.0, 5.0],
+                                      [3.0, 3.0, 3.0, 3.0], [0.1] * 4, [0.1] * 4]):
+        replay.insert(key, np.array(priorities), 4)  # the last two go to B_u
+    batch = replay.sample(4, beta=0.0)  # β = 0: every draw weighs 1, the matrix counts draws
+    prioritized = batch.from_prioritized
+    assert prioritized.sum() <= 3 and (~prioritized).sum() == 2
+    assert len(set(batch.keys[prioritized].tolist())) == prioritized.sum()  # distinct rows
+    counts = batch.step_weights[prioritized]
+    assert counts.sum() == 2 * 4  # round(ζB) = 2 items' worth of steps = 8 transitions
+    assert np.all(batch.step_weights[~prioritized] == 1.0)  # uniform rows: every step once
+    assert batch.steps_drawn == 8 + 2 * 4
+    # Steps whose priority is (clamped) zero are (all but) never drawn.
+    row_of = {key: row for row, key in enumerate(batch.keys[prioritized].tolist())}
+    if 0 in row_of:
+        assert counts[row_of[0], 1:].sum() == 0
+
+
+def test_zeta_zero_bypasses_the_prioritized_buffer():
+    replay = DualReplay(2, 100, zeta=0.0, seed=22)
+    for priority in [5.0, 6.0, 1.0]:
+        replay.insert(None, priority, 4)
+    assert replay._prioritized_keys() == set() and replay._uniform_keys() == [0, 1, 2]
+    assert set(sample_counts(replay, 50, 6)) == {(0, -1), (1, -1), (2, -1)}
+
+
+def test_fifo_retention_displaces_the_oldest_and_samples_by_priority():
+    replay = DualReplay(2, 100, zeta=1.0, seed=23, retention="fifo")
+    a = replay.insert("a", 9.0, 1)
+    b = replay.insert("b", 1.0, 1)
+    c = replay.insert("c", 0.5, 1)  # lower than both, still enters: "a", the oldest, leaves
+    assert replay._prioritized_keys() == {b, c} and replay._uniform_keys() == [a]
+    assert_frequencies(sample_counts(replay, 500, 20), {(b, -1): 2 / 3, (c, -1): 1 / 3})
+    batch = replay.sample(50, beta=1.0)
+    np.testing.assert_allclose(batch.weights, np.where(batch.keys == c, 1.0, 0.5), rtol=1e-6)
+    replay.update_priorities([b], [0.1])  # a priority update does not change who is oldest
+    replay.insert("d", 0.2, 1)
+    assert replay._prioritized_keys() == {c, 3}
 
 
 # ------------------------------------------------------------------------ batch composition
@@ -218,7 +269,7 @@ def replay_with_both_buffers(zeta, seed=17):
 
 
 @pytest.mark.parametrize(
-    ("zeta", "batch_size"), [(0.2, 32), (0.2, 8), (0.25, 10), (0.5, 7), (0.0, 16), (1.0, 16)]
+    ("zeta", "batch_size"), [(0.2, 32), (0.2, 8), (0.25, 10), (0.5, 7), (1.0, 16)]
 )
 def test_batch_takes_round_zeta_b_from_prioritized(zeta, batch_size):
     replay = replay_with_both_buffers(zeta)
@@ -228,13 +279,14 @@ def test_batch_takes_round_zeta_b_from_prioritized(zeta, batch_size):
     flags = batch.from_prioritized.tolist()
     assert [key in prioritized for key in batch.keys.tolist()] == flags
     assert np.all(batch.weights[~batch.from_prioritized] == 1.0)
-    assert len(batch.items) == batch_size == batch.keys.size == batch.step_index.size
+    assert len(batch.items) == batch_size == batch.keys.size
+    assert batch.step_weights is None and batch.steps_drawn == 4 * batch_size
 
 
 def test_prioritized_fills_the_batch_when_uniform_is_empty():
-    # B_p fills before anything reaches B_u, so "B_p empty, B_u not" cannot happen: B_u being
-    # empty is the only one-sided case.
-    replay = DualReplay(4, 100, zeta=0.0, seed=18)
+    # B_p fills before anything reaches B_u, so "B_p empty, B_u not" happens only with ζ = 0
+    # (then B_p is never used): B_u being empty is the other one-sided case.
+    replay = DualReplay(4, 100, zeta=0.1, seed=18)
     replay.insert("x", 1.0, 4)
     batch = replay.sample(8)
     assert batch.from_prioritized.all()
@@ -277,8 +329,9 @@ class ReferenceReplay:
     the model checks that the one the replay chose is a lowest one, then follows that choice.
     """
 
-    def __init__(self, capacity, uniform_capacity_steps, mode):
+    def __init__(self, capacity, uniform_capacity_steps, mode, zeta=0.2):
         self.capacity = capacity
+        self.zeta = zeta
         self.uniform_capacity_steps = uniform_capacity_steps
         self.mode = mode
         self.rank = {}  # B_p: key -> what membership compares
@@ -298,7 +351,9 @@ class ReferenceReplay:
     def insert(self, key, priority, num_steps, prioritized_after):
         self.steps[key] = num_steps
         rank = self.rank_of(key, priority)
-        if len(self.rank) < self.capacity:
+        if self.zeta == 0.0:  # a plain replay: B_p is bypassed
+            self.uniform.append(key)
+        elif len(self.rank) < self.capacity:
             self.enter(key, priority, rank)
         elif rank > min(self.rank.values()):
             (gone,) = set(self.rank) - (prioritized_after - {key})
@@ -351,36 +406,51 @@ def check_against(replay, model):
 
 
 def check_batch(batch, batch_size, beta, alpha, zeta, model):
-    assert len(batch.items) == batch_size
     # B_p fills first, so B_u empty is the only one-sided case: B_p then fills the batch.
     expected_prioritized = round(zeta * batch_size) if model.uniform else batch_size
-    assert batch.from_prioritized.sum() == expected_prioritized
+    if not model.rank:
+        expected_prioritized = 0
     flags = batch.from_prioritized
+    assert (~flags).sum() == batch_size - expected_prioritized
     assert all(key in model.rank for key in batch.keys[flags].tolist())
     assert all(key in model.uniform for key in batch.keys[~flags].tolist())
     assert np.all(batch.weights[~flags] == 1.0)
-    assert np.all(batch.step_index[~flags] == -1)
     assert batch.items == batch.keys.tolist()  # the tests store each item's key as the item
     if model.mode == "none":
+        assert flags.sum() == expected_prioritized
         assert np.all(batch.weights == 1.0)
+        return
+    if not model.rank:
         return
     # The direct formula over every sampling unit in B_p: (P / P_min)^-β.
     smallest = min(p.min() for p in model.unit_priorities.values()) ** alpha
-    for key, step, weight in zip(
-        batch.keys[flags].tolist(),
-        batch.step_index[flags].tolist(),
-        batch.weights[flags].tolist(),
-        strict=True,
-    ):
+    if model.mode == "trajectory":
+        assert flags.sum() == expected_prioritized and batch.step_weights is None
+        for key, weight in zip(batch.keys[flags].tolist(), batch.weights[flags].tolist(),
+                               strict=True):
+            unit = model.unit_priorities[key][0]
+            assert weight == pytest.approx((unit**alpha / smallest) ** (-beta), rel=1e-5)
+            assert 0.0 < weight <= 1.0
+        return
+    # Step mode: distinct fragments, each step's entry a whole number of draws times that
+    # step's weight; the draws add up to round(ζB) items' worth of steps.
+    assert len(set(batch.keys[flags].tolist())) == flags.sum()
+    uniform_rows = batch.step_weights[~flags]
+    for row, key in zip(uniform_rows, batch.keys[~flags].tolist(), strict=True):
+        assert np.all(row[:model.steps[key]] == 1.0) and np.all(row[model.steps[key]:] == 0.0)
+    draws = 0
+    for row, key in zip(batch.step_weights[flags], batch.keys[flags].tolist(), strict=True):
+        assert np.all(row[model.steps[key]:] == 0.0)
         units = model.unit_priorities[key]
-        if model.mode == "step":
-            assert 0 <= step < model.steps[key]
-            unit = units[step]
-        else:
-            assert step == -1
-            unit = units[0]
-        assert weight == pytest.approx((unit**alpha / smallest) ** (-beta), rel=1e-5)
-        assert 0.0 < weight <= 1.0
+        for step, value in enumerate(row[:model.steps[key]].tolist()):
+            weight = (units[step] ** alpha / smallest) ** (-beta)
+            count = value / weight
+            assert count == pytest.approx(round(count), abs=1e-3)
+            draws += round(count)
+    if expected_prioritized:
+        mean_steps = sum(model.steps[k] for k in model.rank) / len(model.rank)
+        assert draws == max(1, round(expected_prioritized * mean_steps))
+    assert batch.steps_drawn == draws + sum(model.steps[k] for k in batch.keys[~flags].tolist())
 
 
 priorities = st.one_of(
@@ -418,7 +488,7 @@ def test_membership_displacement_and_fifo_follow_the_rules(
     replay = DualReplay(
         capacity, uniform_capacity_steps, zeta=zeta, alpha=alpha, seed=0, priority_mode=mode
     )
-    model = ReferenceReplay(capacity, uniform_capacity_steps, mode)
+    model = ReferenceReplay(capacity, uniform_capacity_steps, mode, zeta)
     num_steps_of = {}  # key -> num_steps, the length a step-mode update for it must have
     for operation in operations:
         if operation[0] == "insert":

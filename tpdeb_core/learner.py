@@ -61,7 +61,7 @@ def collate(fragments: list[Fragment]) -> Batch:
 def impact_surrogate(
     logp: torch.Tensor,
     behaviour_logp: torch.Tensor,
-    target_logp: torch.Tensor,
+    target_logp: torch.Tensor | None,
     advantages: torch.Tensor,
     clip_coef: float,
     rho_target_bar: float,
@@ -70,9 +70,12 @@ def impact_surrogate(
 
     r_t = is_t · π_θ/μ with is_t = min(μ/π_θ̄, ρ̄_target): the clip is centred on the target
     policy, so the policy moves at most ε away from π_θ̄ per sample however stale μ is.
+    Without a target policy (`target_logp` None) it is PPO's clipped surrogate, r_t = π_θ/μ.
     """
-    log_is = torch.clamp(behaviour_logp - target_logp, max=math.log(rho_target_bar)).detach()
-    log_ratio = logp - behaviour_logp + log_is
+    log_ratio = logp - behaviour_logp
+    if target_logp is not None:
+        log_is = torch.clamp(behaviour_logp - target_logp, max=math.log(rho_target_bar))
+        log_ratio = log_ratio + log_is.detach()
     ratio = torch.exp(log_ratio)
     clipped = ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef)
     return -torch.min(ratio * advantages, clipped * advantages), log_ratio
@@ -112,19 +115,28 @@ class Learner:
         keys: np.ndarray,
         weights: np.ndarray,
         from_prioritized: np.ndarray,
-        step_index: np.ndarray | None = None,
+        step_weights: np.ndarray | None = None,
+        steps_drawn: int = 0,
     ) -> StepResult:
+        """One update on `fragments` ([B] of them). `weights` [B] are the replay's importance
+        weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the weights
+        of the transitions drawn there) and `steps_drawn` is the number of transitions drawn,
+        which normalises the loss (default B·T)."""
         cfg, model = self.config, self.model
         batch = collate(fragments)
         T, B = batch.rewards.shape
+        anchored = cfg.clip_anchor == "target"
 
         obs = model.norm_obs(batch.obs)  # [T+1, B, obs_dim], current statistics
         mean, log_std = model.policy(obs[:-1])
         logp = gaussian_log_prob(mean, log_std, batch.actions)
         values = model.value(obs)  # [T+1, B]
         with torch.no_grad():
-            t_mean, t_log_std = self.target_policy(obs[:-1])
-            target_logp = gaussian_log_prob(t_mean, t_log_std, batch.actions)
+            if anchored:
+                t_mean, t_log_std = self.target_policy(obs[:-1])
+                target_logp = gaussian_log_prob(t_mean, t_log_std, batch.actions)
+            else:  # PPO: V-trace toward the policy being trained
+                target_logp = logp.detach()
             # Truncation: bootstrap from the real final observation through the reward and cut
             # the trace there (discount 0), so nothing flows across the episode boundary.
             scale = model.reward_scale()
@@ -139,23 +151,23 @@ class Learner:
                     accumulate=True)
             vt = vtrace_terms(
                 batch.behaviour_logp, target_logp, rewards, values[:-1].detach(),
-                values[-1].detach(), discounts, cfg.rho_bar, cfg.c_bar, cfg.rho_pg_bar)
+                values[-1].detach(), discounts, cfg.rho_bar, cfg.c_bar, cfg.rho_pg_bar,
+                cfg.vtrace_lambda)
             adv = vt.pg_advantages
             if cfg.norm_adv:
                 adv = (adv - adv.mean()) / (adv.std() + 1e-8)
 
-        # Per-element loss weights: PER importance weights, and in step mode a prioritized
-        # sample contributes only the transition that was drawn.
-        mask = torch.ones(T, B)
-        if cfg.priority_mode == "step" and step_index is not None:
-            for b in np.flatnonzero(from_prioritized):
-                mask[:, b] = 0.0
-                mask[int(step_index[b]), b] = 1.0
-        w = torch.tensor(np.asarray(weights, np.float32)) * mask  # a copy: inputs may be read-only
-        norm = mask.sum()
+        # Per-element loss weights: PER importance weights per fragment, or per step (with the
+        # number of draws that hit it) in step mode. Copies: the inputs may be read-only.
+        if step_weights is not None:
+            w = torch.tensor(np.asarray(step_weights, np.float32)[:, :T].T)
+        else:
+            w = torch.tensor(np.asarray(weights, np.float32)).expand(T, B)
+        norm = float(steps_drawn or T * B)
 
         surrogate, log_ratio = impact_surrogate(
-            logp, batch.behaviour_logp, target_logp, adv, cfg.clip_coef, cfg.rho_target_bar)
+            logp, batch.behaviour_logp, target_logp if anchored else None, adv, cfg.clip_coef,
+            cfg.rho_target_bar)
         ratio = torch.exp(log_ratio)
         pg_loss = (surrogate * w).sum() / norm
         value_loss = 0.5 * ((values[:-1] - vt.vs).pow(2) * w).sum() / norm
@@ -167,7 +179,8 @@ class Learner:
         loss.backward()
         grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
         self.optimizer.step()
-        self._soft_update_target()
+        if anchored:
+            self._soft_update_target()
         self.updates += 1
         if cfg.kl_target > 0:
             self._adapt_kl_coef(kl.item())
@@ -188,7 +201,8 @@ class Learner:
             "losses/explained_variance": explained,
             "losses/grad_norm": float(grad_norm),
             "losses/target_is_clipfrac": (batch.behaviour_logp - target_logp
-                                          >= math.log(cfg.rho_target_bar)).float().mean().item(),
+                                          >= math.log(cfg.rho_target_bar)).float().mean().item()
+            if anchored else 0.0,
         }
         return StepResult(metrics, *self._new_priorities(vt, rewards, discounts, keys,
                                                          from_prioritized))

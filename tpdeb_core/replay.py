@@ -16,6 +16,16 @@ segment trees over its slots, so insert, sample (per item) and update are O(log 
 Priorities are clamped to ≥ `min_priority` as they arrive and everything downstream (membership,
 sampling, weights, stats) sees the clamped value: then p^α > 0, and every item in B_p can be drawn.
 
+ζ = 0 is a plain replay: B_p is bypassed and every item goes to B_u (else B_p would hold the
+highest-priority items where no batch can reach them). `retention="fifo"` makes B_p a FIFO that
+is still *sampled* by priority (PER over the newest items, the PPO+PER baseline): the oldest
+item is displaced, whatever its priority.
+
+In "step" mode the prioritized part of a batch is round(ζB) items' worth of transitions (T
+draws per item, Schaul et al.'s PER over single steps), returned as the distinct fragments that
+were drawn with a per-step weight matrix (Σ of the importance weights of the draws that hit each
+step): the learner then trains on as many transitions as in trajectory mode.
+
 Pure: numpy and the standard library only — no I/O, no clocks.
 """
 
@@ -31,6 +41,7 @@ import numpy as np
 from tpdeb_core.sumtree import MinTree, SumTree
 
 PRIORITY_MODES = ("trajectory", "step", "none")
+RETENTIONS = ("priority", "fifo")
 
 
 @dataclass(frozen=True)
@@ -41,7 +52,10 @@ class ReplaySample:
     keys: np.ndarray  # int64[B]
     from_prioritized: np.ndarray  # bool[B]
     weights: np.ndarray  # float32[B]: importance weights, exactly 1.0 for uniform items
-    step_index: np.ndarray  # int64[B]: the drawn step in "step" mode, else -1
+    # "step" mode: float32[B, T] per-step loss weights (Σ of the importance weights of the
+    # draws at each step; all 1.0 on uniform rows); None in the other modes
+    step_weights: np.ndarray | None = None
+    steps_drawn: int = 0  # transitions the batch stands for: the loss's normaliser
 
 
 class _Leaf(NamedTuple):
@@ -91,6 +105,8 @@ class DualReplay:
         priority_mode: "trajectory" (one priority per item), "step" (one per step: PER over
             single transitions) or "none" (B_p holds the newest items, sampled uniformly).
         min_priority: floor applied to stored priorities so that priority^alpha > 0.
+        retention: which item B_p gives up when full: "priority" (the lowest; TPDEB) or
+            "fifo" (the oldest; sampling stays by priority).
     """
 
     def __init__(
@@ -102,6 +118,7 @@ class DualReplay:
         seed: int | None = None,
         priority_mode: str = "trajectory",
         min_priority: float = 1e-6,
+        retention: str = "priority",
     ) -> None:
         self._capacity = _check_int("prioritized_capacity", prioritized_capacity, 1)
         self._uniform_capacity_steps = _check_int(
@@ -114,6 +131,9 @@ class DualReplay:
                 f"priority_mode must be one of {PRIORITY_MODES}, got {priority_mode!r}"
             )
         self._mode = priority_mode
+        if retention not in RETENTIONS:
+            raise ValueError(f"retention must be one of {RETENTIONS}, got {retention!r}")
+        self._fifo = retention == "fifo"
         self._min_priority = _check_real("min_priority", min_priority, 0.0)
         if self._min_priority == 0.0:
             raise ValueError(
@@ -170,7 +190,11 @@ class DualReplay:
         self._next_key += 1
         self._inserted += 1
 
-        if self._free_slots:
+        if self._fifo:
+            leaf = leaf._replace(rank=float(key))
+        if self._zeta == 0.0:
+            self._append_uniform(key, item, num_steps)
+        elif self._free_slots:
             self._store_prioritized(self._free_slots.pop(), key, item, num_steps, leaf)
         elif leaf.rank > self._rank.min():
             slot = self._rank.argmin()
@@ -281,42 +305,78 @@ class DualReplay:
         else:
             num_prioritized = round(self._zeta * batch_size)
 
-        slots, step_index, weights = self._sample_prioritized(num_prioritized, beta)
-        positions = self._rng.integers(
-            self._uniform_head, len(self._uniform), size=batch_size - num_prioritized
-        )
+        if self._mode == "step":
+            slots, step_weights, weights, drawn = self._sample_steps(num_prioritized, beta)
+        else:
+            slots, weights = self._sample_prioritized(num_prioritized, beta)
+            step_weights, drawn = None, int(self._slot_steps[slots].sum())
+        num_uniform = batch_size - num_prioritized
+        positions = self._rng.integers(self._uniform_head, len(self._uniform), size=num_uniform)
         uniform_entries = [self._uniform[i] for i in positions.tolist()]
 
         items = [self._items[s] for s in slots.tolist()] + [e.item for e in uniform_entries]
         keys = np.concatenate(
             [self._slot_keys[slots], np.array([e.key for e in uniform_entries], dtype=np.int64)]
         )
-        from_prioritized = np.arange(batch_size) < num_prioritized
-        all_weights = np.ones(batch_size, dtype=np.float32)
-        all_weights[:num_prioritized] = weights
-        all_steps = np.full(batch_size, -1, dtype=np.int64)
-        all_steps[:num_prioritized] = step_index
+        rows = len(items)
+        from_prioritized = np.arange(rows) < slots.size
+        all_weights = np.ones(rows, dtype=np.float32)
+        all_weights[:slots.size] = weights
+        uniform_steps = sum(e.num_steps for e in uniform_entries)
+        if step_weights is not None:
+            width = max([step_weights.shape[1], *(e.num_steps for e in uniform_entries)])
+            matrix = np.zeros((rows, width), dtype=np.float32)
+            matrix[:slots.size, :step_weights.shape[1]] = step_weights
+            for row, entry in enumerate(uniform_entries, start=slots.size):
+                matrix[row, :entry.num_steps] = 1.0
+            step_weights = matrix
 
         self._sampled += batch_size
-        self._sampled_steps += int(self._slot_steps[slots].sum())
-        self._sampled_steps += sum(e.num_steps for e in uniform_entries)
-        return ReplaySample(items, keys, from_prioritized, all_weights, all_steps)
+        self._sampled_steps += drawn + uniform_steps
+        return ReplaySample(items, keys, from_prioritized, all_weights, step_weights,
+                            drawn + uniform_steps)
 
-    def _sample_prioritized(self, count: int, beta: float):
+    def _draw_slots(self, count: int) -> np.ndarray:
         """Stratified proportional draw (Schaul et al. 2016): one draw per equal segment of mass."""
-        if count == 0:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float64)
         segment = self._mass.total() / count
         targets = (np.arange(count) + self._rng.random(count)) * segment
-        slots = self._mass.find_prefix(targets)
+        return self._mass.find_prefix(targets)
+
+    def _sample_prioritized(self, count: int, beta: float):
+        """`count` items ∝ mass and their importance weights (trajectory and none modes)."""
+        if count == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.float64)
+        slots = self._draw_slots(count)
         if self._mode == "none":
-            return slots, np.full(count, -1, dtype=np.int64), np.ones(count)
-        if self._mode == "trajectory":
-            # (P / P_min)^(-β) = (p / p_min)^(-αβ): read from the rank tree, whose leaves are
-            # the clamped priorities, so the lowest item gets exactly 1.0.
-            ratio = self._rank.get(slots) / self._rank.min()
-            return slots, np.full(count, -1, dtype=np.int64), ratio ** (-self._alpha * beta)
-        # Step mode: the tree picks the fragment ∝ Σ_t p_t^α, then a step ∝ p_t^α in it: O(T).
+            return slots, np.ones(count)
+        # (P / P_min)^(-β) = (p / p_min)^(-αβ), with P_min from the lowest priority: fifo
+        # retention keeps keys in the rank tree, so the masses say it there.
+        if self._fifo:
+            return slots, (self._mass.get(slots) / self._min_mass()) ** (-beta)
+        ratio = self._rank.get(slots) / self._rank.min()
+        return slots, ratio ** (-self._alpha * beta)
+
+    def _min_mass(self) -> float:
+        live = np.flatnonzero(self._slot_keys >= 0)
+        return float(np.min(self._mass.get(live)))
+
+    def _sample_steps(self, count: int, beta: float):
+        """Step mode: `count` items' worth of single transitions (`_draw_steps`), grouped by
+        fragment: (distinct slots, [rows, T] Σ of the draws' weights per step, row weights 1,
+        number of draws)."""
+        if count == 0:
+            return np.zeros(0, np.int64), np.zeros((0, 0), np.float32), np.zeros(0), 0
+        draws = max(1, round(count * self._prioritized_steps / len(self._slot_of_key)))
+        slots, steps, weights = self._draw_steps(draws, beta)
+        distinct, rows = np.unique(slots, return_inverse=True)
+        matrix = np.zeros((distinct.size, int(self._slot_steps[distinct].max())))
+        np.add.at(matrix, (rows, steps), weights)
+        return distinct, matrix.astype(np.float32), np.ones(distinct.size), draws
+
+    def _draw_steps(self, count: int, beta: float):
+        """`count` single transitions: the tree picks a fragment ∝ Σ_t p_t^α, then a step ∝
+        p_t^α in it (O(T) each); returns (slots, steps, importance weights) per draw."""
+        slots = self._draw_slots(count)
         step_index = np.empty(count, dtype=np.int64)
         step_mass = np.empty(count, dtype=np.float64)
         within = self._rng.random(count)
@@ -382,7 +442,8 @@ class DualReplay:
             bad_mass = float(masses[unusable][0])
             self._checked_mass(bad_mass, f"priorities[{first}]", float(values[first]))
         self._mass.set_many(slots, masses)
-        self._rank.set_many(slots, clamped)
+        if not self._fifo:
+            self._rank.set_many(slots, clamped)
         return len(found)
 
     def _update_steps(
@@ -403,7 +464,8 @@ class DualReplay:
         for slot, leaf in zip(slots.tolist(), leaves, strict=True):
             self._step_masses[slot] = leaf.step_masses
         self._mass.set_many(slots, np.array([leaf.mass for leaf in leaves]))
-        self._rank.set_many(slots, np.array([leaf.rank for leaf in leaves]))
+        if not self._fifo:
+            self._rank.set_many(slots, np.array([leaf.rank for leaf in leaves]))
         self._min_step_mass.set_many(slots, [leaf.step_masses.min() for leaf in leaves])
         return len(found)
 
@@ -418,7 +480,10 @@ class DualReplay:
         call it at reporting rate, not per operation."""
         priority_min = priority_max = priority_mean = 0.0
         if self._slot_of_key and self._mode != "none":
-            ranks = self._rank.get(np.flatnonzero(self._slot_keys >= 0))
+            live = np.flatnonzero(self._slot_keys >= 0)
+            # fifo retention keeps keys in the rank tree: the priorities are in the masses
+            ranks = (self._mass.get(live) ** (1.0 / self._alpha) if self._fifo and self._alpha
+                     else self._rank.get(live))
             priority_min = float(ranks.min())
             priority_max = float(ranks.max())
             priority_mean = float(ranks.mean())
@@ -449,7 +514,8 @@ class DualReplay:
             "config": {"prioritized_capacity": self._capacity,
                        "uniform_capacity_steps": self._uniform_capacity_steps,
                        "priority_mode": self._mode, "alpha": self._alpha,
-                       "min_priority": self._min_priority},
+                       "min_priority": self._min_priority,
+                       "retention": "fifo" if self._fifo else "priority"},
             "slots": live.copy(),
             "slot_keys": self._slot_keys[live].copy(),
             "slot_steps": self._slot_steps[live].copy(),
@@ -472,8 +538,9 @@ class DualReplay:
         config = state["config"]
         for name, mine in (("prioritized_capacity", self._capacity),
                            ("uniform_capacity_steps", self._uniform_capacity_steps),
-                           ("priority_mode", self._mode)):
-            if config[name] != mine:
+                           ("priority_mode", self._mode),
+                           ("retention", "fifo" if self._fifo else "priority")):
+            if config.get(name, "priority") != mine:
                 raise ValueError(f"saved buffer has {name}={config[name]!r}, this one {mine!r}")
         slots = np.asarray(state["slots"], dtype=np.int64)
         keys = np.asarray(state["slot_keys"], dtype=np.int64)

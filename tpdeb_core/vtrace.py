@@ -44,11 +44,14 @@ def vtrace_terms(
     rho_bar: float = 1.0,
     c_bar: float = 1.0,
     rho_pg_bar: float = 1.0,
+    lambda_: float = 1.0,
 ) -> VTraceTerms:
-    """V-trace with the intermediate terms the learner also needs (priorities use ρδ)."""
+    """V-trace with the intermediate terms the learner also needs (priorities use ρδ).
+    `lambda_` scales the traces, c_t = λ·min(c̄, π/μ) (as rlax's and Sample Factory's V-trace):
+    λ < 1 trades the targets' variance for bias, like GAE's λ."""
     ratios = torch.exp(target_logp - behaviour_logp)
     rhos = ratios.clamp(max=rho_bar)
-    cs = ratios.clamp(max=c_bar)
+    cs = lambda_ * ratios.clamp(max=c_bar)
     next_values = torch.cat([values[1:], bootstrap_value.unsqueeze(0)], dim=0)
     deltas = rewards + discounts * next_values - values
     corrections = torch.einsum("stb,tb->sb", discounted_products(discounts * cs), rhos * deltas)

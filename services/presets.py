@@ -1,0 +1,100 @@
+"""Per-task presets and the algorithm switch: the two layers between a config's defaults and
+what the user sets.
+
+Precedence, lowest first: dataclass defaults < the task's preset (`deploy/presets/{env_id}.toml`,
+picked by env id; `--preset none` skips it, `--preset FILE` names another) < the algorithm's
+defining settings (`--algo impact|ppo-per`) < `--config FILE` < `TPDEB_*` < flags. A user
+setting that contradicts what the chosen algorithm is made of (IMPACT with a KL term) is refused,
+not silently overridden: the run would not be the algorithm its name says.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from services.config import ConfigError, coerce, load_toml
+
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "deploy" / "presets"
+# Settings that say which run this is, not how to learn: never part of a preset.
+RUN_IDENTITY = {"env_id", "seed", "run_dir", "preset", "exp_name", "total_timesteps", "algo",
+                "log_interval_s"}
+
+
+def _ppo_per(values: dict) -> dict:
+    batch = int(values.get("batch_fragments", 8))
+    return {"zeta": 1.0, "priority_mode": "step", "replay_retention": "fifo",
+            "prioritized_capacity": 3 * batch,
+            "uniform_capacity_steps": int(values.get("fragment_len", 64)),
+            "clip_anchor": "behaviour", "kl_coef": 0.0, "kl_target": 0.0}
+
+
+# What each algorithm is made of (SPEC §7, "Baselines"), as settings over the task's preset;
+# a function of the other values where it depends on them.
+ALGORITHMS = {
+    # The paper's method: both buffers, trajectory priorities, KL(μ‖π_θ), soft target τ.
+    "tpdeb": lambda values: {},
+    # IMPACT: one uniform circular buffer (ζ = 0 bypasses B_p), no KL term, the surrogate
+    # clipped around a target network (soft τ, an allowed equivalent of IMPACT's periodic copy).
+    "impact": lambda values: {"zeta": 0.0, "kl_coef": 0.0, "kl_target": 0.0},
+    # PPO + PER: a FIFO holding three batches, sampled by step-level PER (|δ|, α, β as TPDEB),
+    # the clip on the ratio to the behaviour policy (no target policy), no KL term.
+    "ppo-per": _ppo_per,
+}
+
+
+def preset_path(env_id: str, choice: str) -> Path | None:
+    """The preset file for `env_id` under `choice` ("auto", "none" or a path)."""
+    if choice == "none":
+        return None
+    if choice in ("", "auto"):
+        path = PRESETS_DIR / f"{env_id}.toml"
+        return path if path.is_file() else None
+    path = Path(choice)
+    if not path.is_file():
+        raise ConfigError(f"preset={choice!r}: no such file (use auto, none or a TOML file)")
+    return path
+
+
+def load_preset(cls, path: Path) -> dict:
+    names = {f.name for f in dataclasses.fields(cls)}
+    values = {}
+    for key, value in load_toml(path).items():
+        key = key.replace("-", "_")
+        if key in RUN_IDENTITY or key not in names:
+            what = "says which run this is" if key in RUN_IDENTITY else "is not a setting"
+            raise ConfigError(f"preset {path}: {key!r} {what}; a preset holds training "
+                              "settings only")
+        values[key] = coerce(cls, key, value, f"preset {path}")
+    return values
+
+
+def layer(cls, user: dict) -> dict:
+    """`user` (file, environment and flag values, already coerced) on top of the preset and the
+    algorithm's settings; `preset` in the result is the file used (or "none")."""
+    defaults = {f.name: f.default for f in dataclasses.fields(cls)
+                if f.default is not dataclasses.MISSING}
+    env_id = user.get("env_id", defaults["env_id"])
+    path = preset_path(env_id, user.get("preset", defaults["preset"]))
+    values = load_preset(cls, path) if path is not None else {}
+    values.update(user)
+    algo = values.get("algo", defaults["algo"])
+    if algo not in ALGORITHMS:
+        raise ConfigError(f"algo={algo!r}: must be one of {', '.join(ALGORITHMS)}")
+    for key, fixed in ALGORITHMS[algo]({**defaults, **values}).items():
+        if key in user and user[key] != fixed:
+            raise ConfigError(f"algo={algo} fixes {key}={fixed!r}, but {key}={user[key]!r} was "
+                              f"given: drop that setting (or use --algo tpdeb to vary it)")
+        values[key] = fixed
+    values["preset"] = str(path.resolve()) if path is not None else "none"
+    return values
+
+
+def shown(preset: str) -> str:
+    """A preset path as announced: relative to the working directory where it is inside it."""
+    if preset == "none":
+        return "none (defaults)"
+    try:
+        return str(Path(preset).relative_to(Path.cwd()))
+    except ValueError:
+        return preset

@@ -1,0 +1,149 @@
+"""Task presets and the algorithm switch: chosen by env id, announced, overridden by the usual
+layers; baselines fix what defines them and refuse contradicting settings."""
+
+import dataclasses
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.config import ConfigError, resolve
+from services.presets import ALGORITHMS, PRESETS_DIR, RUN_IDENTITY
+from services.service_config import ActorServiceConfig, LearnerServiceConfig
+from services.train_config import TrainConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
+SETTING = re.compile(r"^([a-z_]+)\s*=")
+
+
+def parse(argv, cls=TrainConfig):
+    return resolve(cls, argv, "tpdeb-train", "test")
+
+
+def preset_settings(path: Path) -> list[tuple[str, str]]:
+    """(setting, the comment lines just above it) for each setting in a preset file."""
+    found, comment = [], []
+    for line in path.read_text().splitlines():
+        if line.startswith("#"):
+            comment.append(line)
+        elif SETTING.match(line):
+            found.append((SETTING.match(line)[1], " ".join(comment)))
+            comment = []
+        elif not line.strip():
+            comment = []
+    return found
+
+
+@pytest.mark.parametrize("env_id", TASKS)
+def test_every_task_has_a_preset_whose_values_are_settings_with_a_reason(env_id):
+    path = PRESETS_DIR / f"{env_id}.toml"
+    settings = preset_settings(path)
+    assert settings, f"{path} sets nothing"
+    names = {f.name for f in dataclasses.fields(TrainConfig)} - RUN_IDENTITY
+    for name, reason in settings:
+        assert name in names, f"{path}: {name} is not a training setting"
+        assert len(reason) > 20, f"{path}: {name} has no reason above it"
+    config = parse(["--env-id", env_id])
+    assert config.preset == str(path.resolve())
+
+
+def test_larger_networks_for_ant_and_humanoid():
+    for env_id in ("Ant-v5", "Humanoid-v5"):
+        assert min(parse(["--env-id", env_id]).hidden_sizes) > 64
+
+
+def test_preset_is_below_file_env_and_flags(tmp_path, monkeypatch):
+    preset = parse(["--env-id", "Hopper-v5"])
+    plain = parse(["--env-id", "Hopper-v5", "--preset", "none"])
+    assert preset.gamma != plain.gamma == TrainConfig.gamma and plain.preset == "none"
+    file = tmp_path / "c.toml"
+    file.write_text("gamma = 0.97\n")
+    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).gamma == 0.97
+    monkeypatch.setenv("TPDEB_GAMMA", "0.98")
+    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).gamma == 0.98
+    assert parse(["--env-id", "Hopper-v5", "--gamma", "0.95"]).gamma == 0.95
+
+
+def test_the_env_id_from_a_file_or_the_environment_picks_the_preset(tmp_path, monkeypatch):
+    file = tmp_path / "c.toml"
+    file.write_text('env_id = "Swimmer-v5"\n')
+    assert parse(["--config", str(file)]).preset.endswith("Swimmer-v5.toml")
+    monkeypatch.setenv("TPDEB_ENV_ID", "Hopper-v5")
+    assert parse([], LearnerServiceConfig).preset.endswith("Hopper-v5.toml")
+
+
+def test_a_task_without_a_preset_runs_the_defaults():
+    config = parse(["--env-id", "InvertedPendulum-v5"])
+    assert config.preset == "none" and config.gamma == TrainConfig.gamma
+
+
+def test_bad_presets_are_refused_in_one_line(tmp_path):
+    with pytest.raises(ConfigError, match="no such file"):
+        parse(["--preset", str(tmp_path / "missing.toml")])
+    bad = tmp_path / "bad.toml"
+    bad.write_text("seed = 3\n")
+    with pytest.raises(ConfigError, match="says which run this is"):
+        parse(["--preset", str(bad)])
+    bad.write_text("learning_rat = 3e-4\n")
+    with pytest.raises(ConfigError, match="is not a setting"):
+        parse(["--preset", str(bad)])
+    bad.write_text("gamma = 'high'\n")
+    with pytest.raises(ConfigError, match="gamma"):
+        parse(["--preset", str(bad)])
+
+
+def test_impact_and_ppo_per_fix_what_defines_them():
+    impact = parse(["--env-id", "Hopper-v5", "--algo", "impact"])
+    assert (impact.zeta, impact.kl_coef, impact.kl_target) == (0.0, 0.0, 0.0)
+    assert impact.clip_anchor == "target" and impact.gamma == parse(["--env-id", "Hopper-v5"]).gamma
+    ppo = parse(["--algo", "ppo-per", "--batch-fragments", "6"])
+    assert (ppo.zeta, ppo.priority_mode, ppo.replay_retention, ppo.clip_anchor) == (
+        1.0, "step", "fifo", "behaviour")
+    assert ppo.prioritized_capacity == 18 and ppo.kl_coef == 0.0  # three batches, no KL
+    tpdeb = parse([])
+    assert tpdeb.zeta > 0 and tpdeb.kl_coef > 0 and tpdeb.priority_mode == "trajectory"
+
+
+def test_a_setting_that_contradicts_the_algorithm_is_refused():
+    with pytest.raises(ConfigError, match="algo=impact fixes kl_coef=0.0"):
+        parse(["--algo", "impact", "--kl-coef", "0.01"])
+    with pytest.raises(ConfigError, match="algo=ppo-per fixes clip_anchor"):
+        parse(["--algo", "ppo-per", "--clip-anchor", "target"])
+    with pytest.raises(ConfigError, match="algo"):
+        parse(["--algo", "sac"])
+    # Repeating what the algorithm fixes is fine: a resolved config reads back.
+    assert parse(["--algo", "impact", "--zeta", "0"]).zeta == 0.0
+
+
+def test_every_algorithm_runs_through_every_service_config():
+    for algo in ALGORITHMS:
+        for cls in (ActorServiceConfig, LearnerServiceConfig):
+            assert parse(["--algo", algo, "--env-id", "Ant-v5"], cls).algo == algo
+
+
+def test_tpdeb_train_announces_the_preset(tmp_path):
+    cmd = [sys.executable, "-m", "services.serial", "--env-id", "Hopper-v5", "--total-timesteps",
+           "64", "--num-envs", "1", "--run-dir", str(tmp_path / "run")]
+    out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "preset: deploy/presets/Hopper-v5.toml" in out.stdout
+    written = (tmp_path / "run" / "config.toml").read_text()
+    assert "gamma = 0.999" in written and "Hopper-v5.toml" in written
+
+
+def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
+    from services.cluster import make_plan, parse_args
+
+    def plan(*flags):
+        return make_plan(parse_args([*flags, "--run-dir", str(tmp_path / "run")])).train
+
+    assert plan("--env-id", "Hopper-v5").gamma == 0.999
+    assert plan("--env-id", "Hopper-v5", "--set", "gamma=0.98").gamma == 0.98
+    assert plan("--env-id", "Hopper-v5", "--set", "preset=none").gamma == TrainConfig.gamma
+    impact = plan("--env-id", "Ant-v5", "--set", "algo=impact")
+    assert impact.zeta == 0.0 and impact.hidden_sizes == parse(["--env-id", "Ant-v5"]).hidden_sizes
+    with pytest.raises(ConfigError, match="algo=impact fixes"):
+        plan("--set", "algo=impact", "--set", "kl_coef=0.1")
