@@ -58,6 +58,7 @@ def run_one(env_id: str, steps: int, seed: int, rate: float, variant: str, compr
            str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--actors", "2",
            "--num-envs", "4", "--link-up-bytes-per-s", str(wire_rate),
            "--link-down-bytes-per-s", str(wire_rate), "--set", "log_interval_s=10",
+           "--set", "preset=none",  # the settings these results were measured with
            *VARIANTS[variant], *COMPRESSION[compression]]
     print(f"[bandwidth] {link_name(rate):>9} | {variant:<11} | {compression:<10} | seed {seed}"
           " …", flush=True)

@@ -1,0 +1,142 @@
+"""Tables and figures of the paper comparison from the finished runs in docs/data/{tag}/.
+
+Writes the part of docs/RESULTS.md between its `<!-- paper:begin -->` and `<!-- paper:end -->`
+markers (the prose around them is kept) and one PNG of learning curves per task in
+docs/img/paper/. Called by `python bench/paper.py --report`.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import numpy as np
+from runs import ROOT  # noqa: I001  (bench/ is on sys.path)
+
+from services.plot import band, label_axes, save, smooth
+
+# SB3-zoo tuned PPO's published 1M returns, CleanRL PPO's for Humanoid: the bar and the
+# Table 2 thresholds.
+THRESHOLDS = {"HalfCheetah-v5": 5819, "Hopper-v5": 2410, "Walker2d-v5": 3479, "Ant-v5": 1327,
+              "Humanoid-v5": 716, "Swimmer-v5": 282}
+NAMES = {"tpdeb": "TPDEB", "impact": "IMPACT", "ppo-per": "PPO+PER"}
+WINDOW = 20
+BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
+
+
+def load(directory: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(directory.glob("*.json"))]
+
+
+def cell(values: list[float]) -> str:
+    if not values:
+        return "—"
+    std = statistics.stdev(values) if len(values) > 1 else 0.0
+    return f"{statistics.mean(values):,.0f} ± {std:,.0f} (n={len(values)})"
+
+
+def mean_curve(runs: list[dict], points: int = 200):
+    """(grid, mean, std) over seeds of the runs' smoothed curves on a common env-step grid."""
+    end = min(max(s for s, _ in r["curve"]) for r in runs)
+    grid = np.linspace(0.0, end, points)
+    curves = []
+    for r in runs:
+        steps, returns = np.array(r["curve"], dtype=np.float64).T
+        curves.append(np.interp(grid, steps, smooth(returns, WINDOW)))
+    return grid, np.mean(curves, axis=0), np.std(curves, axis=0)
+
+
+def steps_to(runs: list[dict], threshold: float) -> str:
+    grid, mean, _ = mean_curve(runs)
+    hit = np.flatnonzero(mean >= threshold)
+    return f"{grid[hit[0]] / 1e3:,.0f}k" if hit.size else "not reached"
+
+
+def tables(results: list[dict], envs: list[str], algos: list[str]) -> str:
+    by = {}
+    for r in results:
+        by.setdefault((r["env_id"], r["algo"]), []).append(r)
+    heads = " | ".join(NAMES[a] for a in algos)
+    rule = "|---" * (len(algos) + 1) + "|"
+    out = [f"Training return (mean episodic return over the last 10 % of steps), mean ± std over "
+           f"seeds:\n\n| task | {heads} |\n{rule}"]
+    for env_id in envs:
+        out.append(f"| {env_id} | " + " | ".join(
+            cell([r["final_return"] for r in by.get((env_id, a), [])]) for a in algos) + " |")
+    out.append(f"\nEvaluation return (final checkpoint, 10 deterministic episodes), mean ± std "
+               f"over seeds:\n\n| task | {heads} |\n{rule}")
+    for env_id in envs:
+        out.append(f"| {env_id} | " + " | ".join(
+            cell([r["eval"]["mean_return"] for r in by.get((env_id, a), []) if r.get("eval")])
+            for a in algos) + " |")
+    out.append(f"\nEnv steps until the smoothed mean curve reaches the threshold (the paper's "
+               f"Table 2 form; {WINDOW}-point moving average):\n\n| task | threshold | {heads} |"
+               f"\n{rule}---|")
+    for env_id in envs:
+        out.append(f"| {env_id} | {THRESHOLDS[env_id]:,} | " + " | ".join(
+            steps_to(by[(env_id, a)], THRESHOLDS[env_id]) if (env_id, a) in by else "—"
+            for a in algos) + " |")
+    return "\n".join(out)
+
+
+def figure(results: list[dict], env_id: str, algos: list[str], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.4, 3.8))
+    for n, algo in enumerate(algos):
+        runs = [r for r in results if r["env_id"] == env_id and r["algo"] == algo and r["curve"]]
+        if not runs:
+            continue
+        grid, mean, std = mean_curve(runs)
+        band(ax, grid, mean, std, f"C{n}", f"{NAMES[algo]} ({len(runs)} seeds)")
+    ax.axhline(THRESHOLDS[env_id], color="grey", lw=0.8, ls="--", label="threshold")
+    label_axes(ax, env_id, "episodic return")
+    save(fig, path)
+
+
+def report(directory: Path, envs: list[str], algos: list[str], update_doc: bool = True) -> None:
+    """Print the tables, draw the figures beside the data (docs/img/{tag}/); for the reported
+    grid (`update_doc`) also rewrite docs/RESULTS.md's generated part."""
+    results = load(directory)
+    tag = directory.relative_to(ROOT / "docs" / "data")
+    if not results:
+        print(f"no finished runs in {directory}")
+        return
+    present = [e for e in envs if any(r["env_id"] == e for r in results)]
+    text = tables(results, present, algos)
+    for env_id in present:
+        image = ROOT / "docs" / "img" / tag / f"{env_id}.png"
+        figure(results, env_id, algos, image)
+        text += f"\n\n![{env_id}](img/{tag}/{env_id}.png)"
+    print(text)
+    doc = ROOT / "docs" / "RESULTS.md"
+    if update_doc and doc.exists() and BEGIN in doc.read_text():
+        head, rest = doc.read_text().split(BEGIN, 1)
+        tail = rest.split(END, 1)[1] if END in rest else ""
+        doc.write_text(f"{head}{BEGIN}\n{text}\n{END}{tail}")
+        print(f"\nupdated {doc}")
+
+
+def tuning_table(directory: Path) -> str:
+    """Every tuning run under docs/data/tune/: its settings, return and diagnostics."""
+    rows = []
+    for path in sorted(directory.glob("*/*.json")):
+        r = json.loads(path.read_text())
+        d = r.get("diagnostics", {})
+        rows.append((r["env_id"], r["total_steps"], path.parent.name, r["seed"], r))
+    lines = ["| task | steps | variant | settings over the defaults | seed | training return | "
+             "clipfrac | KL(μ‖π) | policy lag | sample age |", "|---" * 10 + "|"]
+    for env_id, steps, name, seed, r in sorted(rows, key=lambda x: (x[0], x[1], x[2], x[3])):
+        d = r.get("diagnostics", {})
+        settings = ", ".join(o for o in r.get("overrides", []) if o != "preset=none") or "—"
+        lines.append(
+            f"| {env_id} | {steps / 1e3:,.0f}k | {name} | {settings} | {seed} | "
+            f"{r['final_return']:,.0f} | {d.get('losses/clipfrac', float('nan')):.2f} | "
+            f"{d.get('losses/kl_behaviour', float('nan')):.2f} | "
+            f"{d.get('actor/param_version_lag', float('nan')):.0f} | "
+            f"{d.get('replay/sample_age_updates', float('nan')):.0f} |")
+    return "\n".join(lines)

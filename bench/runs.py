@@ -1,0 +1,94 @@
+"""What the learning benches share: run one `tpdeb-cluster` training run in its own process
+group, and reduce a run directory's metrics.jsonl to the protocol's figures."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# Learner metrics averaged over the last 10 % of steps: the diagnostics of a run.
+DIAGNOSTICS = ("losses/clipfrac", "losses/kl_behaviour", "losses/approx_kl",
+               "losses/explained_variance", "losses/entropy", "actor/param_version_lag",
+               "replay/sample_age_updates", "perf/update_ms")
+
+
+def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[str],
+                log_path: Path, timeout_s: float) -> tuple[int, float]:
+    """One cluster run to `steps` env steps; returns (exit code, wall seconds). The whole
+    process group is stopped on timeout or when this process is interrupted."""
+    cmd = [sys.executable, "-m", "services.cluster", "--env-id", env_id, "--total-timesteps",
+           str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--set",
+           "log_interval_s=10", *extra]
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    start = time.monotonic()
+    with log_path.open("w") as log:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        try:
+            code = proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGTERM)
+            code = proc.wait(60)
+        except BaseException:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(60)
+            raise
+    return code, time.monotonic() - start
+
+
+def read_metrics(run_dir: Path) -> list[dict]:
+    path = Path(run_dir) / "metrics.jsonl"
+    if not path.exists():
+        return []
+    rows = []
+    for line in path.open():
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:  # a torn last line of a killed run
+            break
+    return rows
+
+
+def episodes(rows: list[dict]) -> list[tuple[int, float]]:
+    return [(r["global_step"], r["charts/episodic_return"]) for r in rows
+            if "charts/episodic_return" in r]
+
+
+def training_return(curve: list[tuple[int, float]], total_steps: int) -> float:
+    """Mean episodic return over the last 10 % of the steps (the protocol's training return)."""
+    tail = [ret for step, ret in curve if step >= 0.9 * total_steps]
+    tail = tail or [ret for _, ret in curve[-10:]]
+    return statistics.mean(tail) if tail else float("nan")
+
+
+def summarize(rows: list[dict], total_steps: int) -> dict:
+    curve = episodes(rows)
+    last = max((r["global_step"] for r in rows), default=0)
+    diagnostics = {}
+    for tag in DIAGNOSTICS:
+        values = [r[tag] for r in rows if tag in r and r["global_step"] >= 0.9 * last]
+        if values:
+            diagnostics[tag] = statistics.mean(values)
+    return {"final_return": training_return(curve, total_steps), "steps": last,
+            "episodes": len(curve), "diagnostics": diagnostics, "curve": thin(curve, 400)}
+
+
+def thin(curve: list[tuple[int, float]], points: int) -> list[tuple[int, float]]:
+    """At most `points` (step, return) pairs, each the mean of a run of consecutive episodes:
+    keeps result files small without changing the curve's shape."""
+    if len(curve) <= points:
+        return [(int(s), round(float(r), 2)) for s, r in curve]
+    size = len(curve) / points
+    out = []
+    for i in range(points):
+        chunk = curve[int(i * size):int((i + 1) * size)]
+        out.append((int(chunk[-1][0]), round(statistics.mean(r for _, r in chunk), 2)))
+    return out
