@@ -8,7 +8,7 @@ BIN := $(VENV)/bin
 ARGS ?=
 
 .PHONY: install run serial test lint bench-replay bench-learn bench-throughput bench-bandwidth \
-	bench-snapshot bench-fuzz bench-soak clean
+	bench-snapshot bench-fuzz bench-soak bench-paper clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -57,6 +57,11 @@ bench-fuzz: install
 # 10 minutes of the local cluster, RSS drift per service (ARGS='--minutes 30' for longer).
 bench-soak: install
 	$(BIN)/python bench/soak.py $(ARGS)
+
+# The paper's comparison: 6 tasks × TPDEB/IMPACT/PPO+PER × seeds 11-13 × 1M steps, resumable
+# (hours); ARGS='--report' rewrites docs/RESULTS.md from the finished runs.
+bench-paper: install
+	$(BIN)/python bench/paper.py $(ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .ruff_cache

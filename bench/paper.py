@@ -49,29 +49,67 @@ def evaluate(run_dir: Path, episodes: int, seed: int) -> dict | None:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def finished(run_dir: Path, steps: int) -> bool:
+    """The learner reached `steps` and wrote its final checkpoint."""
+    from services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+
+    return run_dir.is_dir() and any(c.tag == FINAL and c.global_step >= steps
+                                    for c in list_checkpoints(checkpoint_dir(run_dir)))
+
+
+def cluster_wall_s(run_dir: Path) -> float:
+    """Seconds from the run dir's creation to its final checkpoint."""
+    from services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+
+    final = [c for c in list_checkpoints(checkpoint_dir(run_dir)) if c.tag == FINAL]
+    return final[-1].path.stat().st_mtime - (run_dir / "cluster.json").stat().st_mtime
+
+
+def code_version() -> str:
+    """The commit the run was made with (+ "-dirty" with uncommitted changes), or "" outside
+    a git checkout."""
+    try:
+        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
+                              capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+                               cwd=ROOT, capture_output=True, text=True, timeout=10)
+    except OSError:
+        return ""
+    if head.returncode != 0:
+        return ""
+    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
+
+
 def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
     path = result_path(args.tag, env_id, algo, args.steps, seed)
     if path.exists():
         return json.loads(path.read_text())
     name = path.stem
     run_dir = OUT / args.tag / "runs" / name
-    if run_dir.exists():  # a run cut short: start it again from nothing
-        shutil.rmtree(run_dir)
-    extra = ["--set", f"algo={algo}"]
-    for item in args.set:
-        extra += ["--set", item]
-    print(f"[paper] {time.strftime('%H:%M')} {args.tag}: {env_id} | {algo} | seed {seed} | "
-          f"{args.steps:,} steps …", flush=True)
-    code, wall_s = run_cluster(env_id, args.steps, seed, run_dir, extra,
-                               OUT / args.tag / f"{name}.log", args.timeout_s)
-    if code != 0:
-        print(f"[paper]   exit code {code} after {wall_s:.0f} s; see {OUT / args.tag}/"
-              f"{name}.log (not recorded, will be rerun)", flush=True)
-        return None
+    code, wall_s = 0, float("nan")
+    if finished(run_dir, args.steps):  # trained to the end, then failed to exit cleanly
+        print(f"[paper] {env_id} | {algo} | seed {seed}: recording the finished run in "
+              f"{run_dir}", flush=True)
+    else:
+        if run_dir.exists():  # a run cut short: start it again from nothing
+            shutil.rmtree(run_dir)
+        extra = ["--set", f"algo={algo}"]
+        for item in args.set:
+            extra += ["--set", item]
+        print(f"[paper] {time.strftime('%H:%M')} {args.tag}: {env_id} | {algo} | seed {seed} | "
+              f"{args.steps:,} steps …", flush=True)
+        code, wall_s = run_cluster(env_id, args.steps, seed, run_dir, extra,
+                                   OUT / args.tag / f"{name}.log", args.timeout_s)
+        if code != 0 and not finished(run_dir, args.steps):
+            print(f"[paper]   exit code {code} after {wall_s:.0f} s; see {OUT / args.tag}/"
+                  f"{name}.log (not recorded, will be rerun)", flush=True)
+            return None
     result = summarize(read_metrics(run_dir), args.steps)
+    if wall_s != wall_s:  # recorded afterwards: the wall time from the cluster's own log
+        wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,
                   overrides=list(args.set), wall_s=round(wall_s, 1),
-                  sps=round(result["steps"] / wall_s, 1))
+                  sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -102,12 +140,17 @@ def main() -> None:
     parser.add_argument("--report", action="store_true",
                         help="no runs: write docs/RESULTS.md's tables and the figures")
     parser.add_argument("--tuning", action="store_true",
-                        help="no runs: print the table of every tuning run (docs/data/tune/)")
+                        help="no runs: the table of every tuning run (docs/data/tune/), also "
+                             "into docs/RESULTS.md")
     args = parser.parse_args()
     if args.tuning:
-        from paper_report import tuning_table
+        from paper_report import replace_between, tuning_table
 
-        print(tuning_table(DATA / "tune"))
+        table = tuning_table(DATA / "tune")
+        print(table)
+        if replace_between(ROOT / "docs" / "RESULTS.md", "<!-- tuning:begin -->",
+                           "<!-- tuning:end -->", table):
+            print("\nupdated docs/RESULTS.md")
         return
     if args.report:
         from paper_report import report

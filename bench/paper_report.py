@@ -98,6 +98,16 @@ def figure(results: list[dict], env_id: str, algos: list[str], path: Path) -> No
     save(fig, path)
 
 
+def replace_between(doc: Path, begin: str, end: str, text: str) -> bool:
+    """Put `text` between the markers `begin` and `end` of `doc`; False where it has none."""
+    if not doc.exists() or begin not in doc.read_text():
+        return False
+    head, rest = doc.read_text().split(begin, 1)
+    tail = rest.split(end, 1)[1] if end in rest else ""
+    doc.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
+    return True
+
+
 def report(directory: Path, envs: list[str], algos: list[str], update_doc: bool = True) -> None:
     """Print the tables, draw the figures beside the data (docs/img/{tag}/); for the reported
     grid (`update_doc`) also rewrite docs/RESULTS.md's generated part."""
@@ -114,10 +124,7 @@ def report(directory: Path, envs: list[str], algos: list[str], update_doc: bool 
         text += f"\n\n![{env_id}](img/{tag}/{env_id}.png)"
     print(text)
     doc = ROOT / "docs" / "RESULTS.md"
-    if update_doc and doc.exists() and BEGIN in doc.read_text():
-        head, rest = doc.read_text().split(BEGIN, 1)
-        tail = rest.split(END, 1)[1] if END in rest else ""
-        doc.write_text(f"{head}{BEGIN}\n{text}\n{END}{tail}")
+    if update_doc and replace_between(doc, BEGIN, END, text):
         print(f"\nupdated {doc}")
 
 

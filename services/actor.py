@@ -37,6 +37,7 @@ from services.wire import fragment_to_message, load_params, model_for, spec_mism
 from services.zsession import (
     RateLimitedLog,
     StopSignal,
+    close_session,
     fail,
     fetch_spec,
     open_for,
@@ -300,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         if service is not None:
             service.close()
-        session.close()
+        close_session(session, PROG)
     say(PROG, f"actor {config.actor_id} stopped ({stop.reason}): {service.collector.env_steps:,} "
               f"steps, {service.sent} fragments sent, {service.outbox.acked} acknowledged, "
               f"{service.resent} resent")

@@ -64,6 +64,7 @@ from services.wire import finite_values, message_to_fragment, model_for, params_
 from services.zsession import (
     RateLimitedLog,
     StopSignal,
+    close_session,
     fail,
     fetch_spec,
     open_for,
@@ -470,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
                               f"started with --env-id {config.env_id!r}")
         service = LearnerService(config, spec, session, stop, resume)
     except ConfigError as exc:
-        session.close()
+        close_session(session, PROG)
         if stop:  # stopped while waiting for the replay server: not an error
             say(PROG, f"stopped ({stop.reason}) before training")
             return 0
@@ -480,7 +481,7 @@ def main(argv: list[str] | None = None) -> int:
         finished = service.run()
     finally:
         service.finish(finished)
-        session.close()
+        close_session(session, PROG)
     return 0 if finished or stop.reason in ("SIGINT", "SIGTERM") else 1
 
 

@@ -41,7 +41,7 @@ from services.envs import make_vector_env, space_dims
 from services.persistence import ReplayPersistence
 from services.service_config import ReplayServiceConfig
 from services.wire import finite_values, message_to_fragment, run_spec
-from services.zsession import RateLimitedLog, StopSignal, fail, open_for, say
+from services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
 from tpdeb_core.model import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
@@ -460,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
             server.enable_persistence(server_dir / "replay")
     except (ConfigError, OSError, DecodeError) as exc:
         server.close()
-        session.close()
+        close_session(session, PROG)
         return fail(PROG, exc)
     where = ", ".join(config.listen) or f"the router at {', '.join(config.connect)}"
     say(PROG, f"run {config.run_id}: serving {spec.env_id} (obs {spec.obs_dim}, act "
@@ -471,7 +471,7 @@ def main(argv: list[str] | None = None) -> int:
         server.run()
     finally:
         server.close()
-        session.close()
+        close_session(session, PROG)
     say(PROG, f"stopped ({stop.reason}); {server.inserted_steps:,} steps ingested, "
               f"{sum(server.bad.values())} bad messages dropped")
     return 0

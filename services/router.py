@@ -15,7 +15,7 @@ from pathlib import Path
 from services.config import ConfigError, resolve
 from services.security import access_control, read_auth_file
 from services.service_config import DEFAULT_ENDPOINT, ServiceConfig
-from services.zsession import StopSignal, fail, open_for, say
+from services.zsession import StopSignal, close_session, fail, open_for, say
 
 PROG = "tpdeb-router"
 
@@ -64,7 +64,7 @@ def main(argv: list[str] | None = None) -> int:
         while not stop.wait(1.0):
             pass
     finally:
-        session.close()
+        close_session(session, PROG)
     say(PROG, f"stopped ({stop.reason})")
     return 0
 

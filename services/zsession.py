@@ -301,6 +301,16 @@ class RateLimitedLog:
         print(f"{self.prog}: {line}{more}", file=sys.stderr, flush=True)
 
 
+def close_session(session, prog: str) -> None:
+    """Close a session at the end of a process. A close that times out (the router is gone or
+    the machine is overloaded) loses nothing at that point: say so, and go on exiting."""
+    try:
+        session.close()
+    except zenoh.ZError as exc:
+        say(prog, f"the Zenoh session did not close cleanly ({str(exc).split(' at ')[0]}); "
+                  "exiting anyway")
+
+
 def say(prog: str, line: str) -> None:
     print(f"{prog}: {line}", flush=True)
 
