@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from runs import ROOT, read_metrics, run_cluster, summarize  # noqa: E402
+from runs import ROOT, read_run_metrics, run_cluster, summarize  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
 ALGOS = ("tpdeb", "impact", "ppo-per")
@@ -104,7 +104,7 @@ def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
             print(f"[paper]   exit code {code} after {wall_s:.0f} s; see {OUT / args.tag}/"
                   f"{name}.log (not recorded, will be rerun)", flush=True)
             return None
-    result = summarize(read_metrics(run_dir), args.steps)
+    result = summarize(read_run_metrics(run_dir), args.steps)
     if wall_s != wall_s:  # recorded afterwards: the wall time from the cluster's own log
         wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,

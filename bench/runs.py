@@ -3,7 +3,6 @@ group, and reduce a run directory's metrics.jsonl to the protocol's figures."""
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import statistics
@@ -11,6 +10,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+from services.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,17 +45,9 @@ def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[s
     return code, time.monotonic() - start
 
 
-def read_metrics(run_dir: Path) -> list[dict]:
+def read_run_metrics(run_dir: Path) -> list[dict]:
     path = Path(run_dir) / "metrics.jsonl"
-    if not path.exists():
-        return []
-    rows = []
-    for line in path.open():
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:  # a torn last line of a killed run
-            break
-    return rows
+    return read_metrics(path) if path.exists() else []
 
 
 def episodes(rows: list[dict]) -> list[tuple[int, float]]:

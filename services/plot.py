@@ -55,17 +55,14 @@ def read_run(path: Path, metric: str) -> Run:
             config = tomllib.loads((path / "config.toml").read_text())
         except tomllib.TOMLDecodeError as exc:
             raise PlotError(f"{path}/config.toml: not valid TOML ({exc})") from None
+    from services.metrics import read_metrics
+
     steps, values = [], []
-    with metrics.open() as f:
-        for line in f:
-            try:
-                row = json.loads(line)
-            except json.JSONDecodeError:
-                break  # a torn last line of a run that was killed
-            value = row.get(metric)
-            if isinstance(value, (int, float)) and math.isfinite(value):
-                steps.append(float(row["global_step"]))
-                values.append(float(value))
+    for row in read_metrics(metrics):
+        value = row.get(metric)
+        if isinstance(value, (int, float)) and math.isfinite(value):
+            steps.append(float(row["global_step"]))
+            values.append(float(value))
     settings = {k: v for k, v in config.items() if k in names}
     return Run(path, str(config.get("env_id", "?")), settings, steps, values)
 
