@@ -136,13 +136,14 @@ def tuning_table(directory: Path) -> str:
         d = r.get("diagnostics", {})
         rows.append((r["env_id"], r["total_steps"], path.parent.name, r["seed"], r))
     lines = ["| task | steps | variant | settings over the defaults | seed | training return | "
-             "clipfrac | KL(μ‖π) | policy lag | sample age |", "|---" * 10 + "|"]
+             "entropy | clipfrac | KL(μ‖π) | policy lag | sample age |", "|---" * 11 + "|"]
     for env_id, steps, name, seed, r in sorted(rows, key=lambda x: (x[0], x[1], x[2], x[3])):
         d = r.get("diagnostics", {})
         settings = ", ".join(o for o in r.get("overrides", []) if o != "preset=none") or "—"
         lines.append(
             f"| {env_id} | {steps / 1e3:,.0f}k | {name} | {settings} | {seed} | "
-            f"{r['final_return']:,.0f} | {d.get('losses/clipfrac', float('nan')):.2f} | "
+            f"{r['final_return']:,.0f} | {d.get('losses/entropy', float('nan')):.1f} | "
+            f"{d.get('losses/clipfrac', float('nan')):.2f} | "
             f"{d.get('losses/kl_behaviour', float('nan')):.2f} | "
             f"{d.get('actor/param_version_lag', float('nan')):.0f} | "
             f"{d.get('replay/sample_age_updates', float('nan')):.0f} |")
