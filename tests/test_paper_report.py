@@ -1,0 +1,68 @@
+"""The comparison's tables and claim paragraphs (bench/paper_report.py) on made-up results."""
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import paper_report  # noqa: E402
+
+
+def result(env_id: str, algo: str, seed: int, level: float) -> dict:
+    """A run whose curve climbs linearly to `level` over 1M steps."""
+    curve = [[s, level * s / 1_000_000] for s in range(0, 1_000_001, 10_000)]
+    return {"env_id": env_id, "algo": algo, "seed": seed, "final_return": level,
+            "eval": {"mean_return": level}, "curve": curve}
+
+
+def grid(levels: dict, seeds=(11, 12, 13)) -> list[dict]:
+    """levels: {(env, algo): level}; seed s adds s to the level (a spread of ~1)."""
+    return [result(e, a, s, level + s) for (e, a), level in levels.items() for s in seeds]
+
+
+def test_steps_to_reads_the_smoothed_mean_curve():
+    runs = grid({("Hopper-v5", "tpdeb"): 3000})
+    assert paper_report.steps_to(runs, 1500) != "not reached"
+    assert paper_report.steps_to(runs, 10_000) == "not reached"
+
+
+def test_compare_needs_a_gap_beyond_the_seed_spread():
+    assert paper_report.compare([10, 11, 12], [1, 2, 3]) == 1
+    assert paper_report.compare([1, 2, 3], [10, 11, 12]) == -1
+    assert paper_report.compare([1, 5, 9], [2, 6, 10]) == 0
+    assert paper_report.compare([10], [1]) == 0  # one seed shows no spread: no verdict
+
+
+def test_claims_count_wins_and_losses_per_task():
+    results = grid({
+        ("Ant-v5", "tpdeb"): 3000, ("Ant-v5", "impact"): 1000, ("Ant-v5", "ppo-per"): 500,
+        ("Hopper-v5", "tpdeb"): 1000, ("Hopper-v5", "impact"): 2000,
+        ("Hopper-v5", "ppo-per"): 1000,
+    })
+    text = paper_report.claims(results, ["Ant-v5", "Hopper-v5"])
+    efficiency, hard, ppo, table2 = text.split("\n\n**")
+    # Ant: beats both; Hopper: loses to IMPACT, ties PPO+PER → 2 of 4, not "most".
+    assert "does not hold here" in efficiency
+    assert "higher beyond the seed spread in 2 of 4 comparisons, lower in 1" in efficiency
+    hopper = next(line for line in efficiency.splitlines() if line.startswith("- Hopper"))
+    assert "IMPACT" in hopper and "(lower)" in hopper and "(within the seed spread)" in hopper
+    assert "- Hopper-v5: TPDEB 1,012 against PPO+PER 1,012 (within the seed spread)" in ppo
+    assert "holds here" in hard and "in 2 of 2" in hard  # Ant only
+    assert "Hopper" not in hard
+    assert "in 1 of 2" in ppo and "does not hold" in ppo
+    assert "Ant-v5: TPDEB" in table2
+
+
+def test_tasks_without_all_their_runs_are_left_out():
+    results = grid({("Ant-v5", "tpdeb"): 3000, ("Ant-v5", "impact"): 1000})  # no PPO+PER
+    results += grid({("Ant-v5", "ppo-per"): 1000}, seeds=(11,))
+    assert "no task has all its runs yet" in paper_report.claims(results, ["Ant-v5"])
+
+
+@pytest.mark.parametrize("algos", [["tpdeb", "impact", "ppo-per"], ["tpdeb"]])
+def test_tables_hold_every_present_algorithm(algos):
+    results = grid({("Swimmer-v5", a): 100 for a in algos})
+    text = paper_report.tables(results, ["Swimmer-v5"], list(paper_report.NAMES))
+    assert "| Swimmer-v5 | 112 ± 1 (n=3) |" in text
+    assert text.count("—") == 2 * (3 - len(algos)) + (3 - len(algos))
