@@ -86,17 +86,17 @@ def mean_over_training(runs: list[dict]) -> float:
     return float(np.mean(mean))
 
 
-def compare(ours: list[float], theirs: list[float]) -> int:
+def compare(ours: list[float], theirs: list[float]) -> int | None:
     """+1 where our mean beats theirs by more than the larger seed std, −1 the other way,
-    0 within the seed spread (or with a single seed on either side)."""
+    0 within the seed spread; None with a single seed on either side (no spread to judge by)."""
     if len(ours) < 2 or len(theirs) < 2:
-        return 0
+        return None
     gap = statistics.mean(ours) - statistics.mean(theirs)
     spread = max(statistics.stdev(ours), statistics.stdev(theirs))
     return (gap > spread) - (gap < -spread)
 
 
-VERDICT = {1: "higher", 0: "within the seed spread", -1: "lower"}
+VERDICT = {1: "higher", 0: "within the seed spread", -1: "lower", None: "one seed"}
 
 
 def claim(title: str, quote: str, lines: list[str], outcomes: list[int], need: str) -> str:
@@ -106,7 +106,8 @@ def claim(title: str, quote: str, lines: list[str], outcomes: list[int], need: s
     wins, losses = outcomes.count(1), outcomes.count(-1)
     n = len(outcomes)
     holds = {"most": wins > n / 2, "all": wins == n}[need]
-    verdict = ("holds here" if holds else "does not hold here") + (
+    verdict = "no verdict yet: one seed per cell shows no spread" if None in outcomes else (
+        "holds here" if holds else "does not hold here") + (
         f": TPDEB is higher beyond the seed spread in {wins} of {n} comparisons, lower in "
         f"{losses}, within the spread in {n - wins - losses}.")
     return f"**{title}** ({quote}) — {verdict}\n\n" + "\n".join(f"- {x}" for x in lines)
@@ -176,7 +177,8 @@ def figure(results: list[dict], env_id: str, algos: list[str], path: Path) -> No
         if not runs:
             continue
         grid, mean, std = mean_curve(runs)
-        band(ax, grid, mean, std, f"C{n}", f"{NAMES[algo]} ({len(runs)} seeds)")
+        seeds = f"{len(runs)} seed" + "s" * (len(runs) != 1)
+        band(ax, grid, mean, std, f"C{n}", f"{NAMES[algo]} ({seeds})")
     ax.axhline(THRESHOLDS[env_id], color="grey", lw=0.8, ls="--", label="threshold")
     label_axes(ax, env_id, "episodic return")
     save(fig, path)

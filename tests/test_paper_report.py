@@ -31,7 +31,7 @@ def test_compare_needs_a_gap_beyond_the_seed_spread():
     assert paper_report.compare([10, 11, 12], [1, 2, 3]) == 1
     assert paper_report.compare([1, 2, 3], [10, 11, 12]) == -1
     assert paper_report.compare([1, 5, 9], [2, 6, 10]) == 0
-    assert paper_report.compare([10], [1]) == 0  # one seed shows no spread: no verdict
+    assert paper_report.compare([10], [1]) is None  # one seed shows no spread: no verdict
 
 
 def test_claims_count_wins_and_losses_per_task():
@@ -52,6 +52,13 @@ def test_claims_count_wins_and_losses_per_task():
     assert "Hopper" not in hard
     assert "in 1 of 2" in ppo and "does not hold" in ppo
     assert "Ant-v5: TPDEB" in table2
+
+
+def test_one_seed_per_cell_gives_numbers_but_no_verdict():
+    results = grid({("Ant-v5", a): 1000 for a in paper_report.NAMES}, seeds=(11,))
+    text = paper_report.claims(results, ["Ant-v5"])
+    assert text.count("no verdict yet") == 3 and "holds here" not in text
+    assert "IMPACT 1,011 (one seed)" in text
 
 
 def test_tasks_without_all_their_runs_are_left_out():
