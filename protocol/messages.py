@@ -164,7 +164,6 @@ class SampleReply:
     step_weights: np.ndarray | None = wire(OrNone(Array(F4, "B T", ge=0.0)))
     fragments: list[Trajectory] = wire(ListOf(Nested(Trajectory), dim="B"))
     inserted_steps: int = wire(Int())
-    steps_drawn: int = wire(Int(ge=0))  # transitions the batch stands for (the loss normaliser)
     obs_moments: Moments | None = wire(OrNone(Nested(Moments)))
     ret_moments: Moments | None = wire(OrNone(Nested(Moments)))
     reason: str = wire(Str(), default="")
@@ -173,7 +172,7 @@ class SampleReply:
     def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0) -> SampleReply:
         """The empty reply: no batch, and why (e.g. "rate limiter")."""
         return cls(request_id, False, np.zeros(0, np.int64), np.zeros(0, np.float32),
-                   np.zeros(0, bool), None, [], inserted_steps, 0, None, None, reason)
+                   np.zeros(0, bool), None, [], inserted_steps, None, None, reason)
 
     def cross_check(self, scope: Scope, where: str) -> None:
         if not self.ready and (self.fragments or not self.reason):

@@ -313,7 +313,7 @@ class LearnerService:
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
-                                   batch.step_weights, batch.steps_drawn)
+                                   batch.step_weights)
         self.update_s += time.perf_counter() - started
         if len(result.priority_keys):
             self.priorities_publisher.put(encode(PriorityUpdate(

@@ -375,7 +375,7 @@ class ReplayServer:
             from_prioritized=sample.from_prioritized.astype(bool),
             step_weights=sample.step_weights,
             fragments=list(sample.items),
-            inserted_steps=self.inserted_steps, steps_drawn=sample.steps_drawn,
+            inserted_steps=self.inserted_steps,
             obs_moments=Moments(*self.obs_moments) if self.obs_moments[0] else None,
             ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None)
         self.obs_moments = self.ret_moments = _NO_MOMENTS

@@ -94,8 +94,7 @@ class SerialRunner:
         self.limiter.on_sample(cfg.batch_steps)
         start = time.perf_counter()
         result = self.learner.step(sample.items, sample.keys, sample.weights,
-                                   sample.from_prioritized, sample.step_weights,
-                                   sample.steps_drawn)
+                                   sample.from_prioritized, sample.step_weights)
         self.update_time_s += time.perf_counter() - start
         self.replay.update_priorities(result.priority_keys, result.priorities)
         self.sample_lag_sum += float(np.mean(

@@ -126,12 +126,33 @@ def test_step_weights_weigh_single_transitions_in_the_loss():
     weights = np.zeros((n, 8), np.float32)
     weights[2, 3] = 4.0  # four draws of one transition: the whole batch
     learner = Learner(copy.deepcopy(model), config("ppo-per").loss_config())
-    result = learner.step(fragments, np.arange(n), np.ones(n), np.ones(n, bool), weights, 4)
-    first = result.metrics["losses/value_loss"]
+    result = learner.step(fragments, np.arange(n), np.ones(n), np.ones(n, bool), weights)
     only = [fragments[2]]
     learner2 = Learner(copy.deepcopy(model), config("ppo-per").loss_config())
     mask = np.zeros((1, 8), np.float32)
     mask[0, 3] = 1.0
-    second = learner2.step(only, np.arange(1), np.ones(1), np.ones(1, bool), mask, 1)
-    # The value loss of the one transition does not depend on the rest of the batch.
-    assert first == pytest.approx(second.metrics["losses/value_loss"], rel=1e-5)
+    second = learner2.step(only, np.arange(1), np.ones(1), np.ones(1, bool), mask)
+    # The losses of the one transition do not depend on the rest of the batch: the KL term too.
+    for tag in ("losses/value_loss", "losses/kl_behaviour"):
+        assert result.metrics[tag] == pytest.approx(second.metrics[tag], rel=1e-5)
+
+
+def test_loss_terms_keep_their_proportions_whatever_the_scale_of_the_weights():
+    """Step-level PER's weights (p / p_min)^(−β) can all be ≪ 1: the update must be the one
+    their relative sizes ask for, not a vanishing surrogate beside a full entropy bonus."""
+    fragments, model = stale_batch()
+    n = len(fragments)
+    rng = np.random.default_rng(3)
+    weights = rng.uniform(0.5, 2.0, (n, 8)).astype(np.float32)
+    cfg = config("ppo-per", ent_coef=0.01).loss_config()
+    steps = []
+    for scale in (1.0, 1e-4):
+        learner = Learner(copy.deepcopy(model), cfg)
+        result = learner.step(fragments, np.arange(n), np.ones(n), np.ones(n, bool),
+                              weights * scale)
+        steps.append((result.metrics, torch.nn.utils.parameters_to_vector(
+            learner.model.parameters()).detach()))
+    (big, after_big), (small, after_small) = steps
+    for tag in ("losses/policy_loss", "losses/value_loss", "losses/kl_behaviour"):
+        assert big[tag] == pytest.approx(small[tag], rel=1e-4)
+    assert torch.allclose(after_big, after_small, atol=1e-6)

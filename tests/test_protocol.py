@@ -75,7 +75,7 @@ def make_reply() -> SampleReply:
         request_id=9, ready=True, keys=np.array([5, 11], np.int64),
         weights=np.array([0.5, 1.0], np.float32), from_prioritized=np.array([True, False]),
         step_weights=np.array([[0.0, 0.5, 1.5, 0.0], [1.0] * T], np.float32),
-        fragments=[make_traj(1), make_traj(2)], inserted_steps=640, steps_drawn=8,
+        fragments=[make_traj(1), make_traj(2)], inserted_steps=640,
         obs_moments=make_moments((OBS_DIM,)), ret_moments=make_moments(()))
 
 

@@ -116,12 +116,16 @@ class Learner:
         weights: np.ndarray,
         from_prioritized: np.ndarray,
         step_weights: np.ndarray | None = None,
-        steps_drawn: int = 0,
     ) -> StepResult:
         """One update on `fragments` ([B] of them). `weights` [B] are the replay's importance
         weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the weights
-        of the transitions drawn there) and `steps_drawn` is the number of transitions drawn,
-        which normalises the loss (default B·T)."""
+        of the transitions drawn there, 0 where none was).
+
+        Every per-transition term of the loss (surrogate, value, entropy, KL) is the same
+        weighted mean Σ w·ℓ / Σ w. Normalising by Σ w rather than by the count keeps the terms
+        in proportion whatever the scale of the weights: step-level PER's weights
+        (p / p_min)^(−β) can all sit far below 1, and a count-normalised surrogate and value
+        loss then vanish beside an unweighted entropy bonus."""
         cfg, model = self.config, self.model
         batch = collate(fragments)
         T, B = batch.rewards.shape
@@ -163,16 +167,16 @@ class Learner:
             w = torch.tensor(np.asarray(step_weights, np.float32)[:, :T].T)
         else:
             w = torch.tensor(np.asarray(weights, np.float32)).expand(T, B)
-        norm = float(steps_drawn or T * B)
+        w = w / w.sum().clamp_min(1e-12)
 
         surrogate, log_ratio = impact_surrogate(
             logp, batch.behaviour_logp, target_logp if anchored else None, adv, cfg.clip_coef,
             cfg.rho_target_bar)
         ratio = torch.exp(log_ratio)
-        pg_loss = (surrogate * w).sum() / norm
-        value_loss = 0.5 * ((values[:-1] - vt.vs).pow(2) * w).sum() / norm
-        entropy = gaussian_entropy(log_std).mean()
-        kl = gaussian_kl(batch.behaviour_mean, batch.behaviour_log_std, mean, log_std).mean()
+        pg_loss = (surrogate * w).sum()
+        value_loss = 0.5 * ((values[:-1] - vt.vs).pow(2) * w).sum()
+        entropy = (gaussian_entropy(log_std) * w).sum()
+        kl = (gaussian_kl(batch.behaviour_mean, batch.behaviour_log_std, mean, log_std) * w).sum()
         loss = pg_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy + self.kl_coef * kl
 
         self.optimizer.zero_grad(set_to_none=True)
