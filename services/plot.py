@@ -18,6 +18,8 @@ import math
 import sys
 from pathlib import Path
 
+from services.metrics import read_metrics
+
 if sys.version_info >= (3, 11):
     import tomllib
 else:  # pragma: no cover
@@ -55,8 +57,6 @@ def read_run(path: Path, metric: str) -> Run:
             config = tomllib.loads((path / "config.toml").read_text())
         except tomllib.TOMLDecodeError as exc:
             raise PlotError(f"{path}/config.toml: not valid TOML ({exc})") from None
-    from services.metrics import read_metrics
-
     steps, values = [], []
     for row in read_metrics(metrics):
         value = row.get(metric)

@@ -55,7 +55,7 @@ class ReplaySample:
     # "step" mode: float32[B, T] per-step loss weights (Σ of the importance weights of the
     # draws at each step; all 1.0 on uniform rows); None in the other modes
     step_weights: np.ndarray | None = None
-    steps_drawn: int = 0  # transitions the batch stands for: the loss's normaliser
+    steps_drawn: int = 0  # transitions it stands for: 1 per step-mode draw, all steps of the rest
 
 
 class _Leaf(NamedTuple):
