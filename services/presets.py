@@ -24,7 +24,7 @@ RUN_IDENTITY = {"env_id", "seed", "run_dir", "preset", "exp_name", "total_timest
 def _ppo_per(values: dict) -> dict:
     batch = int(values.get("batch_fragments", 8))
     return {"zeta": 1.0, "priority_mode": "step", "replay_retention": "fifo",
-            "prioritized_capacity": 3 * batch,
+            "prioritized_capacity": 3 * batch, "replay_ratio": 1.0,
             "uniform_capacity_steps": int(values.get("fragment_len", 64)),
             "clip_anchor": "behaviour", "kl_coef": 0.0, "kl_target": 0.0}
 
@@ -37,8 +37,10 @@ ALGORITHMS = {
     # IMPACT: one uniform circular buffer (ζ = 0 bypasses B_p), no KL term, the surrogate
     # clipped around a target network (soft τ, an allowed equivalent of IMPACT's periodic copy).
     "impact": lambda values: {"zeta": 0.0, "kl_coef": 0.0, "kl_target": 0.0},
-    # PPO + PER: a FIFO holding three batches, sampled by step-level PER (|δ|, α, β as TPDEB),
-    # the clip on the ratio to the behaviour policy (no target policy), no KL term.
+    # PPO + PER: a FIFO holding three batches, one third of it (a batch) replaced per update, so
+    # one sampled step per inserted step whatever the preset's replay ratio; sampled by
+    # step-level PER (|δ|, α, β as TPDEB); the clip on the ratio to the behaviour policy (no
+    # target policy); no KL term.
     "ppo-per": _ppo_per,
 }
 

@@ -120,6 +120,23 @@ def test_ppo_per_buffer_holds_three_batches_and_samples_single_steps_by_priority
     assert len(set(batch.items)) == len(batch.items)  # one row per distinct fragment
 
 
+
+def test_ppo_per_replaces_a_third_of_its_buffer_per_update_whatever_the_preset():
+    # Hopper's preset asks for 8 sampled steps per inserted step; PPO+PER is made of 1.
+    cfg = config("ppo-per", env_id="Hopper-v5", preset="auto")
+    assert cfg.replay_ratio == 1.0
+    limiter = cfg.rate_limiter()
+    inserted = updates = 0
+    for _ in range(3000):  # a greedy actor and a greedy learner, in steady state
+        if limiter.can_sample(cfg.batch_steps):
+            limiter.on_sample(cfg.batch_steps)
+            updates += 1
+        elif limiter.can_insert(cfg.fragment_len):
+            limiter.on_insert(cfg.fragment_len)
+            inserted += 1
+    buffer_fragments = cfg.prioritized_capacity
+    assert inserted / updates / buffer_fragments == pytest.approx(1 / 3, rel=0.05)
+
 def test_step_weights_weigh_single_transitions_in_the_loss():
     fragments, model = stale_batch()
     n = len(fragments)
