@@ -133,8 +133,9 @@ def claims(results: list[dict], envs: list[str]) -> str:
                 o = compare(ours, theirs)
                 outcomes.append(o)
                 parts.append(f"{NAMES[a]} {statistics.mean(theirs):,.0f} ({VERDICT[o]})")
+            seeds = f"{len(ours)} seed" + "s" * (len(ours) != 1)
             lines.append(f"{e}: TPDEB {statistics.mean(ours):,.0f} against "
-                         + ", ".join(parts) + f"; {label}, {len(ours)} seeds")
+                         + ", ".join(parts) + f"; {label}, {seeds}")
         return lines, outcomes
 
     def curve_means(runs):
