@@ -29,6 +29,10 @@ def load(directory: Path) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted(directory.glob("*.json"))]
 
 
+def seeds(n: int) -> str:
+    return f"{n} seed" + "s" * (n != 1)
+
+
 def cell(values: list[float]) -> str:
     if not values:
         return "—"
@@ -133,9 +137,8 @@ def claims(results: list[dict], envs: list[str]) -> str:
                 o = compare(ours, theirs)
                 outcomes.append(o)
                 parts.append(f"{NAMES[a]} {statistics.mean(theirs):,.0f} ({VERDICT[o]})")
-            seeds = f"{len(ours)} seed" + "s" * (len(ours) != 1)
             lines.append(f"{e}: TPDEB {statistics.mean(ours):,.0f} against "
-                         + ", ".join(parts) + f"; {label}, {seeds}")
+                         + ", ".join(parts) + f"; {label}, {seeds(len(ours))}")
         return lines, outcomes
 
     def curve_means(runs):
@@ -178,8 +181,7 @@ def figure(results: list[dict], env_id: str, algos: list[str], path: Path) -> No
         if not runs:
             continue
         grid, mean, std = mean_curve(runs)
-        seeds = f"{len(runs)} seed" + "s" * (len(runs) != 1)
-        band(ax, grid, mean, std, f"C{n}", f"{NAMES[algo]} ({seeds})")
+        band(ax, grid, mean, std, f"C{n}", f"{NAMES[algo]} ({seeds(len(runs))})")
     ax.axhline(THRESHOLDS[env_id], color="grey", lw=0.8, ls="--", label="threshold")
     label_axes(ax, env_id, "episodic return")
     save(fig, path)

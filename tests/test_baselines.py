@@ -120,7 +120,6 @@ def test_ppo_per_buffer_holds_three_batches_and_samples_single_steps_by_priority
     assert len(set(batch.items)) == len(batch.items)  # one row per distinct fragment
 
 
-
 def test_ppo_per_replaces_a_third_of_its_buffer_per_update_whatever_the_preset():
     # Hopper's preset asks for 8 sampled steps per inserted step; PPO+PER is made of 1.
     cfg = config("ppo-per", env_id="Hopper-v5", preset="auto")
@@ -136,6 +135,7 @@ def test_ppo_per_replaces_a_third_of_its_buffer_per_update_whatever_the_preset()
             inserted += 1
     buffer_fragments = cfg.prioritized_capacity
     assert inserted / updates / buffer_fragments == pytest.approx(1 / 3, rel=0.05)
+
 
 def test_step_weights_weigh_single_transitions_in_the_loss():
     fragments, model = stale_batch()
