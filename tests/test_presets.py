@@ -58,13 +58,14 @@ def test_larger_networks_for_ant_and_humanoid():
 def test_preset_is_below_file_env_and_flags(tmp_path, monkeypatch):
     preset = parse(["--env-id", "Hopper-v5"])
     plain = parse(["--env-id", "Hopper-v5", "--preset", "none"])
-    assert preset.gamma != plain.gamma == TrainConfig.gamma and plain.preset == "none"
+    assert preset.vtrace_lambda != plain.vtrace_lambda == TrainConfig.vtrace_lambda
+    assert plain.preset == "none"
     file = tmp_path / "c.toml"
-    file.write_text("gamma = 0.97\n")
-    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).gamma == 0.97
-    monkeypatch.setenv("TPDEB_GAMMA", "0.98")
-    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).gamma == 0.98
-    assert parse(["--env-id", "Hopper-v5", "--gamma", "0.95"]).gamma == 0.95
+    file.write_text("vtrace_lambda = 0.7\n")
+    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).vtrace_lambda == 0.7
+    monkeypatch.setenv("TPDEB_VTRACE_LAMBDA", "0.8")
+    assert parse(["--env-id", "Hopper-v5", "--config", str(file)]).vtrace_lambda == 0.8
+    assert parse(["--env-id", "Hopper-v5", "--vtrace-lambda", "0.9"]).vtrace_lambda == 0.9
 
 
 def test_the_env_id_from_a_file_or_the_environment_picks_the_preset(tmp_path, monkeypatch):
@@ -96,9 +97,12 @@ def test_bad_presets_are_refused_in_one_line(tmp_path):
 
 
 def test_impact_and_ppo_per_fix_what_defines_them():
+    # Hopper's preset asks for an adaptive KL term; IMPACT has none, the rest of the preset holds.
+    hopper = parse(["--env-id", "Hopper-v5"])
     impact = parse(["--env-id", "Hopper-v5", "--algo", "impact"])
+    assert hopper.kl_target > 0
     assert (impact.zeta, impact.kl_coef, impact.kl_target) == (0.0, 0.0, 0.0)
-    assert impact.clip_anchor == "target" and impact.gamma == parse(["--env-id", "Hopper-v5"]).gamma
+    assert impact.clip_anchor == "target" and impact.vtrace_lambda == hopper.vtrace_lambda
     ppo = parse(["--algo", "ppo-per", "--batch-fragments", "6"])
     assert (ppo.zeta, ppo.priority_mode, ppo.replay_retention, ppo.clip_anchor) == (
         1.0, "step", "fifo", "behaviour")
@@ -131,7 +135,7 @@ def test_tpdeb_train_announces_the_preset(tmp_path):
     assert out.returncode == 0, out.stderr
     assert "preset: deploy/presets/Hopper-v5.toml" in out.stdout
     written = (tmp_path / "run" / "config.toml").read_text()
-    assert "gamma = 0.999" in written and "Hopper-v5.toml" in written
+    assert "kl_target = 0.04" in written and "Hopper-v5.toml" in written
 
 
 def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
@@ -140,9 +144,9 @@ def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
     def plan(*flags):
         return make_plan(parse_args([*flags, "--run-dir", str(tmp_path / "run")])).train
 
-    assert plan("--env-id", "Hopper-v5").gamma == 0.999
-    assert plan("--env-id", "Hopper-v5", "--set", "gamma=0.98").gamma == 0.98
-    assert plan("--env-id", "Hopper-v5", "--set", "preset=none").gamma == TrainConfig.gamma
+    assert plan("--env-id", "Hopper-v5").kl_target == 0.04
+    assert plan("--env-id", "Hopper-v5", "--set", "kl_target=0.02").kl_target == 0.02
+    assert plan("--env-id", "Hopper-v5", "--set", "preset=none").kl_target == TrainConfig.kl_target
     impact = plan("--env-id", "Ant-v5", "--set", "algo=impact")
     assert impact.zeta == 0.0 and impact.hidden_sizes == parse(["--env-id", "Ant-v5"]).hidden_sizes
     with pytest.raises(ConfigError, match="algo=impact fixes"):
