@@ -121,7 +121,8 @@ def test_ppo_per_buffer_holds_three_batches_and_samples_single_steps_by_priority
 
 
 def test_ppo_per_replaces_a_third_of_its_buffer_per_update_whatever_the_preset():
-    # Walker2d's preset asks for 8 sampled steps per inserted step; PPO+PER is made of 1.
+    # Walker2d's preset asks for more sampled steps per inserted step; PPO+PER is made of 1.
+    assert config("tpdeb", env_id="Walker2d-v5", preset="auto").replay_ratio > 1.0
     cfg = config("ppo-per", env_id="Walker2d-v5", preset="auto")
     assert cfg.replay_ratio == 1.0
     limiter = cfg.rate_limiter()
