@@ -84,6 +84,25 @@ def tables(results: list[dict], envs: list[str], algos: list[str]) -> str:
     return "\n".join(out)
 
 
+def ratio(values: list[float], bar: float) -> str:
+    return f"{statistics.mean(values):,.0f} ({statistics.mean(values) / bar - 1:+.0%})"
+
+
+def bar_table(results: list[dict], envs: list[str]) -> str:
+    """TPDEB's mean returns against each task's bar, with the gap in per cent: the evaluation
+    return (deterministic, as the zoo's published figures) and the training return."""
+    out = ["| task | bar | TPDEB evaluation | TPDEB training | seeds |", "|---" * 5 + "|"]
+    for env_id in envs:
+        runs = [r for r in results if r["env_id"] == env_id and r["algo"] == "tpdeb"]
+        if not runs:
+            continue
+        bar = THRESHOLDS[env_id]
+        evals = [r["eval"]["mean_return"] for r in runs if r.get("eval")]
+        out.append(f"| {env_id} | {bar:,} | {ratio(evals, bar) if evals else '—'} | "
+                   f"{ratio([r['final_return'] for r in runs], bar)} | {len(runs)} |")
+    return "\n".join(out)
+
+
 def mean_over_training(runs: list[dict]) -> float:
     """Area under the smoothed mean curve divided by its length: return per env step."""
     _, mean, _ = mean_curve(runs)
@@ -206,7 +225,9 @@ def report(directory: Path, envs: list[str], algos: list[str], update_doc: bool 
         print(f"no finished runs in {directory}")
         return
     present = [e for e in envs if any(r["env_id"] == e for r in results)]
-    text = tables(results, present, algos) + "\n\n" + claims(results, present)
+    text = (tables(results, present, algos) + "\n\nTPDEB against the bar (mean over seeds; "
+            "the gap in per cent):\n\n" + bar_table(results, present) + "\n\n"
+            + claims(results, present))
     for env_id in present:
         image = ROOT / "docs" / "img" / tag / f"{env_id}.png"
         figure(results, env_id, algos, image)

@@ -73,3 +73,12 @@ def test_tables_hold_every_present_algorithm(algos):
     text = paper_report.tables(results, ["Swimmer-v5"], list(paper_report.NAMES))
     assert "| Swimmer-v5 | 112 ± 1 (n=3) |" in text
     assert text.count("—") == 2 * (3 - len(algos)) + (3 - len(algos))
+
+
+def test_bar_table_gives_tpdeb_gap_to_each_tasks_bar():
+    results = grid({("Hopper-v5", "tpdeb"): 2398, ("Ant-v5", "tpdeb"): 2642,
+                    ("Ant-v5", "impact"): 10})
+    table = paper_report.bar_table(results, ["Hopper-v5", "Ant-v5", "Swimmer-v5"])
+    rows = table.splitlines()[2:]
+    assert rows == ["| Hopper-v5 | 2,410 | 2,410 (+0%) | 2,410 (+0%) | 3 |",
+                    "| Ant-v5 | 1,327 | 2,654 (+100%) | 2,654 (+100%) | 3 |"]  # no Swimmer runs
