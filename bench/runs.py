@@ -30,19 +30,29 @@ def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[s
            "log_interval_s=10", *extra]
     log_path.parent.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    with log_path.open("w") as log:
-        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-        try:
-            code = proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGTERM)
-            code = proc.wait(60)
-        except BaseException:
-            os.killpg(proc.pid, signal.SIGTERM)
-            proc.wait(60)
-            raise
+    # A SIGTERM to this script (kill PID) raises here like Ctrl-C, so the cluster, which runs in
+    # its own session, is stopped with it instead of left running.
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm)
+    try:
+        with log_path.open("w") as log:
+            proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                    start_new_session=True)
+            try:
+                code = proc.wait(timeout_s)
+            except subprocess.TimeoutExpired:
+                os.killpg(proc.pid, signal.SIGTERM)
+                code = proc.wait(60)
+            except BaseException:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(60)
+                raise
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     return code, time.monotonic() - start
+
+
+def _exit_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
 
 
 def read_run_metrics(run_dir: Path) -> list[dict]:

@@ -1,0 +1,57 @@
+"""The bench scripts' cluster runner: a script stopped with SIGTERM stops its cluster too (the
+cluster runs in a session of its own, so nothing else would reach it)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCRIPT = """
+import sys
+from pathlib import Path
+sys.path.insert(0, {bench!r})
+from runs import run_cluster
+run_cluster("InvertedPendulum-v5", 10**9, 1, Path({run_dir!r}),
+            ["--set", "preset=none", "--actors", "1"], Path({log!r}), 600)
+"""
+
+
+def pids_mentioning(text: str) -> list[int]:
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if text in (entry / "cmdline").read_bytes().decode(errors="replace"):
+                    found.append(int(entry.name))
+            except OSError:
+                continue
+    return found
+
+
+def test_a_script_stopped_with_sigterm_stops_its_cluster(tmp_path):
+    run_dir, log = tmp_path / "run", tmp_path / "cluster.log"
+    code = SCRIPT.format(bench=str(ROOT / "bench"), run_dir=str(run_dir), log=str(log))
+    script = subprocess.Popen([sys.executable, "-c", code], cwd=ROOT, start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while "tpdeb-learner: run" not in (log.read_text() if log.exists() else ""):
+            assert script.poll() is None and time.monotonic() < deadline, "cluster did not start"
+            time.sleep(0.5)
+        assert pids_mentioning(str(run_dir)), "the cluster's services should be running"
+        script.send_signal(signal.SIGTERM)
+        assert script.wait(90) == 128 + signal.SIGTERM
+        deadline = time.monotonic() + 30
+        while pids_mentioning(str(run_dir)) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert pids_mentioning(str(run_dir)) == []
+    finally:
+        for pid in [script.pid, *pids_mentioning(str(run_dir))]:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        script.wait(10)
