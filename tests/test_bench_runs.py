@@ -1,6 +1,7 @@
 """The bench scripts' cluster runner: a script stopped with SIGTERM stops its cluster too (the
 cluster runs in a session of its own, so nothing else would reach it)."""
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -50,8 +51,6 @@ def test_a_script_stopped_with_sigterm_stops_its_cluster(tmp_path):
         assert pids_mentioning(str(run_dir)) == []
     finally:
         for pid in [script.pid, *pids_mentioning(str(run_dir))]:
-            try:
+            with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
-            except ProcessLookupError:
-                pass
         script.wait(10)
