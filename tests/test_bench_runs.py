@@ -7,9 +7,8 @@ import signal
 import subprocess
 import sys
 import time
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.procs import ROOT, pids_with
 
 SCRIPT = """
 import sys
@@ -21,18 +20,6 @@ run_cluster("InvertedPendulum-v5", 10**9, 1, Path({run_dir!r}),
 """
 
 
-def pids_mentioning(text: str) -> list[int]:
-    found = []
-    for entry in Path("/proc").iterdir():
-        if entry.name.isdigit() and int(entry.name) != os.getpid():
-            try:
-                if text in (entry / "cmdline").read_bytes().decode(errors="replace"):
-                    found.append(int(entry.name))
-            except OSError:
-                continue
-    return found
-
-
 def test_a_script_stopped_with_sigterm_stops_its_cluster(tmp_path):
     run_dir, log = tmp_path / "run", tmp_path / "cluster.log"
     code = SCRIPT.format(bench=str(ROOT / "bench"), run_dir=str(run_dir), log=str(log))
@@ -42,15 +29,15 @@ def test_a_script_stopped_with_sigterm_stops_its_cluster(tmp_path):
         while "tpdeb-learner: run" not in (log.read_text() if log.exists() else ""):
             assert script.poll() is None and time.monotonic() < deadline, "cluster did not start"
             time.sleep(0.5)
-        assert pids_mentioning(str(run_dir)), "the cluster's services should be running"
+        assert pids_with(str(run_dir)), "the cluster's services should be running"
         script.send_signal(signal.SIGTERM)
         assert script.wait(90) == 128 + signal.SIGTERM
         deadline = time.monotonic() + 30
-        while pids_mentioning(str(run_dir)) and time.monotonic() < deadline:
+        while pids_with(str(run_dir)) and time.monotonic() < deadline:
             time.sleep(0.5)
-        assert pids_mentioning(str(run_dir)) == []
+        assert pids_with(str(run_dir)) == []
     finally:
-        for pid in [script.pid, *pids_mentioning(str(run_dir))]:
+        for pid in [script.pid, *pids_with(str(run_dir))]:
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGKILL)
         script.wait(10)

@@ -79,6 +79,6 @@ def test_bar_table_gives_tpdeb_gap_to_each_tasks_bar():
     results = grid({("Hopper-v5", "tpdeb"): 2398, ("Ant-v5", "tpdeb"): 2642,
                     ("Ant-v5", "impact"): 10})
     table = paper_report.bar_table(results, ["Hopper-v5", "Ant-v5", "Swimmer-v5"])
-    rows = table.splitlines()[2:]
+    rows = [line for line in table.splitlines() if line.startswith("| ") and "-v5" in line]
     assert rows == ["| Hopper-v5 | 2,410 | 2,410 (+0%) | 2,410 (+0%) | 3 |",
                     "| Ant-v5 | 1,327 | 2,654 (+100%) | 2,654 (+100%) | 3 |"]  # no Swimmer runs
