@@ -56,11 +56,12 @@ from services.checkpoint import (
     spec_problem,
 )
 from services.config import ConfigError, resolve, to_toml
-from services.metrics import MetricsWriter
+from services.metrics import MetricsWriter, hyperparameter_table
+from services.model_wire import model_for, params_message
 from services.presets import shown
-from services.serial import hyperparameter_table, seed_everything
+from services.seeding import seed_everything
 from services.service_config import LearnerServiceConfig
-from services.wire import finite_values, message_to_fragment, model_for, params_message
+from services.wire import finite_values, message_to_fragment
 from services.zsession import (
     RateLimitedLog,
     StopSignal,

@@ -42,7 +42,7 @@ from services.persistence import ReplayPersistence
 from services.service_config import ReplayServiceConfig
 from services.wire import finite_values, message_to_fragment, run_spec
 from services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
-from tpdeb_core.model import batch_moments, merge_moments
+from tpdeb_core.moments import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
 _NO_MOMENTS = (0.0, 0.0, 0.0)

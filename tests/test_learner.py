@@ -14,7 +14,7 @@ def fragments_and_model(n=6, seed=0):
     torch.manual_seed(seed)
     model = ActorCritic(3, 1)
     envs = ScriptedVectorEnv([5, 7, 9], [True, False, False])
-    collector = Collector(envs, model, 8, 0.99, np.array([-1.0], np.float32),
+    collector = Collector(envs, model.numpy_policy(), 8, 0.99, np.array([-1.0], np.float32),
                           np.array([1.0], np.float32), seed=seed)
     fragments = []
     while len(fragments) < n:
