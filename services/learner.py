@@ -61,7 +61,7 @@ from services.model_wire import model_for, params_message
 from services.presets import shown
 from services.seeding import seed_everything
 from services.service_config import LearnerServiceConfig
-from services.wire import finite_values, message_to_fragment
+from services.wire import batch_of, finite_values
 from services.zsession import (
     RateLimitedLog,
     StopSignal,
@@ -310,7 +310,7 @@ class LearnerService:
         if cfg.anneal_lr:
             progress = min(1.0, self.global_step / cfg.total_timesteps)
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
-        fragments = [message_to_fragment(m) for m in batch.fragments]
+        fragments = batch_of(batch.batch)
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
@@ -324,7 +324,7 @@ class LearnerService:
             self.publish_params()
         for key, value in result.metrics.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
-        ages = [version - f.policy_version for f in fragments]
+        ages = (version - fragments.policy_version).tolist()
         self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
             + float(np.mean(ages))
         # Policy lag: how many versions behind the learner a fragment's behaviour policy was

@@ -24,7 +24,7 @@ from services.metrics import MetricsWriter, hyperparameter_table
 from services.presets import shown
 from services.seeding import seed_everything
 from services.train_config import TrainConfig
-from tpdeb_core.fragments import Collector
+from tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb_core.learner import Learner
 from tpdeb_core.model import ActorCritic
 
@@ -80,7 +80,7 @@ class SerialRunner:
         sample = self.replay.sample(cfg.batch_fragments, beta)
         self.limiter.on_sample(cfg.batch_steps)
         start = time.perf_counter()
-        result = self.learner.step(sample.items, sample.keys, sample.weights,
+        result = self.learner.step(stack_fragments(sample.items), sample.keys, sample.weights,
                                    sample.from_prioritized, sample.step_weights)
         self.update_time_s += time.perf_counter() - start
         self.replay.update_priorities(result.priority_keys, result.priorities)

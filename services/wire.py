@@ -11,13 +11,14 @@ import math
 
 import numpy as np
 
-from protocol import DecodeError, Params, RunSpec, Trajectory
+from protocol import Batch, DecodeError, Params, RunSpec, Trajectory
 from protocol.codec import check_params_shapes
 from services.train_config import TrainConfig
-from tpdeb_core.fragments import Fragment
+from tpdeb_core.fragments import Fragment, FragmentBatch
 from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 _FRAGMENT_FIELDS = [f.name for f in dataclasses.fields(Fragment)]
+_BATCH_FIELDS = [f.name for f in dataclasses.fields(FragmentBatch)]
 
 
 def run_spec(config: TrainConfig, obs_dim: int, act_dim: int, low, high) -> RunSpec:
@@ -48,6 +49,14 @@ def fragment_to_message(fragment: Fragment, reward_scale: float,
 
 def message_to_fragment(message: Trajectory) -> Fragment:
     return Fragment(**{name: getattr(message, name) for name in _FRAGMENT_FIELDS})
+
+
+def batch_message(batch: FragmentBatch) -> Batch:
+    return Batch(**{name: getattr(batch, name) for name in _BATCH_FIELDS})
+
+
+def batch_of(message: Batch) -> FragmentBatch:
+    return FragmentBatch(**{name: getattr(message, name) for name in _BATCH_FIELDS})
 
 
 def expected_shapes(spec: RunSpec) -> dict[str, tuple[int, ...]]:

@@ -22,6 +22,7 @@ from services.wire import run_spec
 from services.zsession import StopSignal, open_session
 from tests.procs import Procs, free_port, pids_with
 from tests.test_learner import fragments_and_model
+from tpdeb_core.fragments import stack_fragments
 from tpdeb_core.learner import Learner, LossConfig
 from tpdeb_core.model import ActorCritic
 
@@ -93,7 +94,7 @@ def trained_learner(steps=3, seed=0) -> tuple[Learner, list]:
         learner.observe(fragment)
     n = len(fragments)
     for _ in range(steps):
-        learner.step(fragments, np.arange(n), np.ones(n, np.float32),
+        learner.step(stack_fragments(fragments), np.arange(n), np.ones(n, np.float32),
                      np.array([True, False] * (n // 2)))
     return learner, fragments
 
@@ -187,7 +188,8 @@ def test_learner_state_round_trips_through_a_checkpoint(tmp_path):
 
     # complete state: the next update is the same for the original and the restored learner
     n = len(fragments)
-    args = (fragments, np.arange(n), np.ones(n, np.float32), np.array([True, False] * (n // 2)))
+    args = (stack_fragments(fragments), np.arange(n), np.ones(n, np.float32),
+            np.array([True, False] * (n // 2)))
     a, b = learner.step(*args), fresh.step(*args)
     assert a.metrics == b.metrics
     for x, y in zip(learner.model.parameters(), fresh.model.parameters(), strict=True):

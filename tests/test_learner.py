@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from tests.fakes import ScriptedVectorEnv
-from tpdeb_core.fragments import Collector
+from tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb_core.learner import Learner, LossConfig, impact_surrogate
 from tpdeb_core.model import ActorCritic
 
@@ -56,7 +56,7 @@ def test_first_update_is_on_policy_and_target_moves_by_tau():
     before = [p.detach().clone() for p in learner.target_policy.parameters()]
     keys = np.arange(len(fragments))
     prioritized = np.array([True, False] * 3)
-    result = learner.step(fragments, keys, np.ones(len(fragments)), prioritized)
+    result = learner.step(stack_fragments(fragments), keys, np.ones(len(fragments)), prioritized)
     m = result.metrics
     # the actor acted with exactly this model: μ = π_θ = π_θ̄, nothing clipped, no KL yet
     assert m["losses/kl_behaviour"] == pytest.approx(0.0, abs=1e-6)
@@ -78,8 +78,8 @@ def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
     for mode in ("trajectory", "step"):
         model.load_state_dict(state)
         learner = Learner(model, LossConfig(priority_mode=mode))
-        results[mode] = learner.step(fragments, np.arange(6), np.ones(6), np.ones(6, bool),
-                                     step_weights=np.ones((6, 8), np.float32))
+        results[mode] = learner.step(stack_fragments(fragments), np.arange(6), np.ones(6),
+                                     np.ones(6, bool), step_weights=np.ones((6, 8), np.float32))
     for total, per_step in zip(results["trajectory"].priorities, results["step"].priorities,
                                strict=True):
         assert per_step.shape == (8,)
@@ -89,14 +89,14 @@ def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
 def test_adaptive_kl_coefficient_moves_toward_target():
     fragments, model = fragments_and_model()
     learner = Learner(model, LossConfig(kl_coef=0.1, kl_target=1.0))
-    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    learner.step(stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
     assert learner.kl_coef == pytest.approx(0.05)  # KL ≈ 0 < target/1.5: halved
 
 
 def test_learner_state_round_trip():
     fragments, model = fragments_and_model()
     learner = Learner(model, LossConfig())
-    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    learner.step(stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
     other = Learner(ActorCritic(3, 1), LossConfig())
     other.load_state_dict(learner.state_dict())
     assert other.updates == 1

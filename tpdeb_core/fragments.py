@@ -53,6 +53,51 @@ class Fragment:
                                  self.discounts(gamma))
 
 
+# The per-step fields the learner trains on, stacked along a new batch axis 1.
+BATCH_STEP_FIELDS = ("obs", "actions", "rewards", "terminated", "truncated", "behaviour_mean",
+                     "behaviour_log_std", "behaviour_logp")
+
+
+@dataclass
+class FragmentBatch:
+    """B fragments stacked time-major, what `Learner.step` trains on. The replay server builds
+    it once per sample and ships it as it is; the learner does no per-fragment work."""
+
+    obs: np.ndarray  # float32 [T+1, B, obs_dim], raw
+    actions: np.ndarray  # float32 [T, B, act_dim]
+    rewards: np.ndarray  # float32 [T, B], raw
+    terminated: np.ndarray  # bool [T, B]
+    truncated: np.ndarray  # bool [T, B]
+    behaviour_mean: np.ndarray  # float32 [T, B, act_dim]
+    behaviour_log_std: np.ndarray  # float32 [T, B, act_dim]
+    behaviour_logp: np.ndarray  # float32 [T, B]
+    trunc_t: np.ndarray  # int32 [K], time index of each truncated step
+    trunc_b: np.ndarray  # int32 [K], its fragment
+    trunc_obs: np.ndarray  # float32 [K, obs_dim], its real final observation
+    policy_version: np.ndarray  # int64 [B], the behaviour policy of each fragment
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(T, B)."""
+        return self.rewards.shape
+
+
+def stack_fragments(fragments) -> FragmentBatch:
+    """Stack fragments (anything with Fragment's attribute names: the wire's Trajectory too)."""
+    stacked = {name: np.stack([getattr(f, name) for f in fragments], axis=1)
+               for name in BATCH_STEP_FIELDS}
+    obs_dim = stacked["obs"].shape[-1]
+    trunc_t = [np.asarray(f.trunc_index, np.int32) for f in fragments]
+    return FragmentBatch(
+        **stacked,
+        trunc_t=np.concatenate(trunc_t) if trunc_t else np.zeros(0, np.int32),
+        trunc_b=np.concatenate([np.full(len(t), b, np.int32) for b, t in enumerate(trunc_t)])
+        if trunc_t else np.zeros(0, np.int32),
+        trunc_obs=np.concatenate([np.asarray(f.trunc_obs, np.float32).reshape(-1, obs_dim)
+                                  for f in fragments]),
+        policy_version=np.array([f.policy_version for f in fragments], np.int64))
+
+
 def fragment_return(rewards_scaled: np.ndarray, discounts: np.ndarray) -> np.ndarray:
     """G_t = Σ_k γ^k r_{t+k} within the fragment, cut at episode ends (discount 0)."""
     out = np.zeros_like(rewards_scaled, dtype=np.float64)

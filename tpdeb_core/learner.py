@@ -14,7 +14,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from tpdeb_core.fragments import Fragment, fragment_priority
+from tpdeb_core.fragments import (
+    BATCH_STEP_FIELDS,
+    Fragment,
+    FragmentBatch,
+    fragment_priority,
+)
 from tpdeb_core.loss_config import LossConfig
 from tpdeb_core.model import ActorCritic, gaussian_entropy, gaussian_kl, gaussian_log_prob
 from tpdeb_core.vtrace import vtrace_terms
@@ -22,9 +27,9 @@ from tpdeb_core.vtrace import vtrace_terms
 
 @dataclass
 class Batch:
-    """Fragments stacked time-major: [T(+1), B, ...] tensors."""
+    """A FragmentBatch as float32 torch tensors (copies: the wire's arrays are read-only)."""
 
-    obs: torch.Tensor
+    obs: torch.Tensor  # [T+1, B, obs_dim]
     actions: torch.Tensor
     rewards: torch.Tensor
     terminated: torch.Tensor
@@ -37,25 +42,13 @@ class Batch:
     trunc_obs: torch.Tensor  # [K, obs_dim]
 
 
-def collate(fragments: list[Fragment]) -> Batch:
-    def stack(name: str, dtype=torch.float32) -> torch.Tensor:
-        arr = np.stack([getattr(f, name) for f in fragments], axis=1)
-        return torch.as_tensor(arr).to(dtype)
+def collate(batch: FragmentBatch) -> Batch:
+    def tensor(array: np.ndarray, dtype=torch.float32) -> torch.Tensor:
+        return torch.tensor(array, dtype=dtype)
 
-    trunc_b = np.concatenate([np.full(len(f.trunc_index), b) for b, f in enumerate(fragments)])
-    return Batch(
-        obs=stack("obs"),
-        actions=stack("actions"),
-        rewards=stack("rewards"),
-        terminated=stack("terminated"),
-        truncated=stack("truncated"),
-        behaviour_mean=stack("behaviour_mean"),
-        behaviour_log_std=stack("behaviour_log_std"),
-        behaviour_logp=stack("behaviour_logp"),
-        trunc_t=torch.as_tensor(np.concatenate([f.trunc_index for f in fragments])).long(),
-        trunc_b=torch.as_tensor(trunc_b).long(),
-        trunc_obs=torch.as_tensor(np.concatenate([f.trunc_obs for f in fragments])).float(),
-    )
+    return Batch(**{name: tensor(getattr(batch, name)) for name in BATCH_STEP_FIELDS},
+                 trunc_t=tensor(batch.trunc_t, torch.long),
+                 trunc_b=tensor(batch.trunc_b, torch.long), trunc_obs=tensor(batch.trunc_obs))
 
 
 def impact_surrogate(
@@ -81,6 +74,11 @@ def impact_surrogate(
     return -torch.min(ratio * advantages, clipped * advantages), log_ratio
 
 
+METRIC_NAMES = ("losses/policy_loss", "losses/value_loss", "losses/entropy",
+                "losses/kl_behaviour", "losses/approx_kl", "losses/clipfrac",
+                "losses/explained_variance", "losses/grad_norm", "losses/target_is_clipfrac")
+
+
 @dataclass
 class StepResult:
     metrics: dict[str, float]
@@ -95,8 +93,14 @@ class Learner:
         self.model = model
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
+        # Held once: walking the module tree for them on every update costs more than the
+        # soft update itself.
+        self.params = list(model.parameters())
+        self.policy_params = list(model.policy.parameters())
+        self.target_params = list(self.target_policy.parameters())
+        # foreach: one kernel per Adam operation over all tensors instead of one per tensor
         self.optimizer = torch.optim.Adam(
-            model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
+            self.params, lr=config.learning_rate, eps=config.adam_eps, foreach=True)
         self.kl_coef = config.kl_coef
         self.updates = 0
 
@@ -111,13 +115,13 @@ class Learner:
 
     def step(
         self,
-        fragments: list[Fragment],
+        fragments: FragmentBatch,
         keys: np.ndarray,
         weights: np.ndarray,
         from_prioritized: np.ndarray,
         step_weights: np.ndarray | None = None,
     ) -> StepResult:
-        """One update on `fragments` ([B] of them). `weights` [B] are the replay's importance
+        """One update on `fragments` (B of them, stacked). `weights` [B] are the replay's importance
         weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the weights
         of the transitions drawn there, 0 where none was).
 
@@ -181,33 +185,26 @@ class Learner:
 
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+        grad_norm = torch.nn.utils.clip_grad_norm_(self.params, cfg.max_grad_norm, foreach=True)
         self.optimizer.step()
         if anchored:
             self._soft_update_target()
         self.updates += 1
-        if cfg.kl_target > 0:
-            self._adapt_kl_coef(kl.item())
 
         with torch.no_grad():
-            approx_kl = ((ratio - 1.0) - log_ratio).mean().item()
-            clipfrac = ((ratio - 1.0).abs() > cfg.clip_coef).float().mean().item()
             var_vs = vt.vs.var()
-            explained = (1.0 - (vt.vs - values[:-1]).var() / var_vs).item() if var_vs > 0 else 0.0
-        metrics = {
-            "losses/policy_loss": pg_loss.item(),
-            "losses/value_loss": value_loss.item(),
-            "losses/entropy": entropy.item(),
-            "losses/kl_behaviour": kl.item(),
-            "losses/kl_coef": self.kl_coef,
-            "losses/approx_kl": approx_kl,
-            "losses/clipfrac": clipfrac,
-            "losses/explained_variance": explained,
-            "losses/grad_norm": float(grad_norm),
-            "losses/target_is_clipfrac": (batch.behaviour_logp - target_logp
-                                          >= math.log(cfg.rho_target_bar)).float().mean().item()
-            if anchored else 0.0,
-        }
+            target_clipped = ((batch.behaviour_logp - target_logp >= math.log(cfg.rho_target_bar))
+                              .float().mean() if anchored else torch.zeros(()))
+            # One conversion for every figure: each .item() is a call of its own.
+            figures = torch.stack([
+                pg_loss, value_loss, entropy, kl, ((ratio - 1.0) - log_ratio).mean(),
+                ((ratio - 1.0).abs() > cfg.clip_coef).float().mean(),
+                torch.where(var_vs > 0, 1.0 - (vt.vs - values[:-1]).var() / var_vs, 0.0),
+                grad_norm, target_clipped]).tolist()
+        if cfg.kl_target > 0:
+            self._adapt_kl_coef(figures[3])
+        metrics = dict(zip(METRIC_NAMES, figures, strict=True))
+        metrics["losses/kl_coef"] = self.kl_coef
         return StepResult(metrics, *self._new_priorities(vt, rewards, discounts, keys,
                                                          from_prioritized))
 
@@ -225,11 +222,7 @@ class Learner:
 
     @torch.no_grad()
     def _soft_update_target(self) -> None:
-        tau = self.config.tau
-        for target, source in zip(
-            self.target_policy.parameters(), self.model.policy.parameters(), strict=True
-        ):
-            target.lerp_(source, tau)
+        torch._foreach_lerp_(self.target_params, self.policy_params, self.config.tau)
 
     def _adapt_kl_coef(self, kl: float) -> None:
         if kl > 1.5 * self.config.kl_target:
