@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from tpdeb_core.adam import Adam
 from tpdeb_core.fragments import (
     BATCH_STEP_FIELDS,
     Fragment,
@@ -98,9 +99,7 @@ class Learner:
         self.params = list(model.parameters())
         self.policy_params = list(model.policy.parameters())
         self.target_params = list(self.target_policy.parameters())
-        # foreach: one kernel per Adam operation over all tensors instead of one per tensor
-        self.optimizer = torch.optim.Adam(
-            self.params, lr=config.learning_rate, eps=config.adam_eps, foreach=True)
+        self.optimizer = Adam(self.params, lr=config.learning_rate, eps=config.adam_eps)
         self.kl_coef = config.kl_coef
         self.updates = 0
 
