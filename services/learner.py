@@ -95,6 +95,10 @@ class LearnerService:
             aside = set_aside(self.run_dir)
             if aside is not None:
                 say(PROG, f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
+        # The model's state tensors (views of its parameters and buffers, which every update and
+        # restore changes in place): taken once, walking the module tree per publication costs
+        # more than encoding the parameters.
+        self.state = self.model.state_dict()
         self.versions = VersionMark(checkpoint_dir(self.run_dir))
         self.version_offset = self.versions.offset(self.learner.updates, restored_version)
         if resume is not None:
@@ -193,13 +197,14 @@ class LearnerService:
         `params` key for any monitor)."""
         version = self.param_version()
         self.versions.reserve(version)  # on disk before any actor can hold this version
-        data = encode(params_message(self.model, version, self.config.params_dtype))
+        data = encode(params_message(self.state, version, self.config.params_dtype))
         with self.params_lock:
             self.params_bytes, self.params_version = data, version
             waiting, self.waiting_queries = self.waiting_queries, []
         for query in waiting:
             self._reply(query, data)
-        self.params_publisher.put(data)
+        if self.params_publisher.matching_status.matching:  # nobody listens: no copy to send
+            self.params_publisher.put(data)
 
     def _answer_latest(self, query) -> None:
         """Long poll: `params/latest?after=V` is answered as soon as a version newer than V

@@ -18,10 +18,12 @@ def model_for(spec: RunSpec) -> ActorCritic:
                        spec.obs_clip)
 
 
-def params_message(model: ActorCritic, version: int, dtype: str = "float32") -> Params:
-    """The model's state as a message; with dtype float16 the float32 weights are halved
-    (a tensor with values beyond float16's range stays float32)."""
-    arrays = model.arrays()
+def params_message(model: ActorCritic | dict[str, torch.Tensor], version: int,
+                   dtype: str = "float32") -> Params:
+    """The model's state (or a state dict of it) as a message; with dtype float16 the float32
+    weights are halved (a tensor with values beyond float16's range stays float32)."""
+    arrays = (model.arrays() if isinstance(model, ActorCritic)
+              else {k: v.detach().numpy() for k, v in model.items()})
     if dtype == "float16":
         arrays = {k: a.astype(np.float16) if a.dtype == np.float32 and (
             a.size == 0 or np.abs(a).max() < FLOAT16_MAX) else a for k, a in arrays.items()}

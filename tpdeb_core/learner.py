@@ -56,8 +56,8 @@ class StepResult:
 def gaussian_log_prob(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
     """log N(a; m, σ) summed over the last axis, σ = exp(log_std) state-independent [A]."""
     z = (actions - mean) * np.exp(-log_std)
-    return -0.5 * np.einsum("...a,...a->...", z, z) - (log_std.sum()
-                                                         + 0.5 * LOG_2PI * log_std.size)
+    z *= z
+    return -0.5 * z.sum(-1) - (log_std.sum() + 0.5 * LOG_2PI * log_std.size)
 
 
 class LossTerms:
