@@ -1,26 +1,28 @@
-"""Throughput benchmark: how close the distributed pieces come to their in-process limits.
+"""Throughput benchmark: every process against the limit the machine sets it.
 
-    python bench/throughput.py                  # HalfCheetah-v5, 10 s parts, 60k-step runs
-    python bench/throughput.py --seconds 3 --total-timesteps 15000     # a quick look
+    python bench/throughput.py                          # HalfCheetah-v5, its preset, 3 runs
+    python bench/throughput.py --repeat 1 --seconds 3 --total-timesteps 40000   # a quick look
 
-Everything is measured in one run on one machine (figures, not pass/fail):
+Each run measures, on this machine and one after another (nothing else should run meanwhile):
 
-1. env limit: one process steps `make_vector_env(env_id, num_envs)` with precomputed random
-   actions, no policy; env steps/s = vector steps × num_envs.
-2. actor: the same env inside `tpdeb_core.fragments.Collector` with an ActorCritic (torch 1
-   thread, as tpdeb-actor), every fragment also encoded to wire bytes; steps/s and its ratio to 1.
-3. learner in memory: `Learner.step` on batches of `batch_fragments` real fragments (collected once)
-   for `--seconds`, with torch at 1 thread and at its default thread count.
-4. clusters: `python -m services.cluster` with 1 and then 2 actors (`--num-envs` each). The
-   cluster's stdout is read line by line and every line is time-stamped on arrival; the learner's
-   progress lines (every `--log-interval-s`) carry env steps and update counts, so rates over the
-   steady part come from wall-clock differences between those lines. The first learner update is
-   timed by a Zenoh client of this script subscribed to the learner's parameter broadcasts (the
-   learner publishes version n right after update n). RSS of the cluster process and all its
-   descendants is sampled every 0.2 s from /proc.
+1. the update floor: forward of the policy on a batch's T·B observations and of the value net on
+   its (T+1)·B, backward and the learner's Adam, nothing else; and `Learner.step` itself on
+   batches stacked as the replay server ships them (1 torch thread, as the learner);
+2. the acting limit: a plain loop of the vector env and the same policy in numpy, one core, no
+   fragments, learning or messaging; and the actor's own work (the Collector with its initial
+   priorities, every fragment encoded);
+3. the learner limit: in-memory updates/s × batch steps ÷ replay ratio (the env steps/s the
+   learner could absorb);
+4. the cluster (`python -m services.cluster`, the default config with the task's preset): its
+   stdout is time-stamped line by line; steady env steps/s and updates/s come from the learner's
+   progress lines, launch → first update from a Zenoh client of this script that sees the
+   learner's first parameters with version ≥ 1, peak RSS of every process from /proc (0.2 s);
+5. start-up parts: each service module's import in a fresh interpreter, the env's
+   construction, and the cluster's timeline (router up, replay serving, learner training,
+   actors stepping, first update).
 
-Writes `bench/out/throughput/results.json` (and the clusters' logs and run dirs beside it) and
-prints a markdown table.
+Prints medians over `--repeat` runs with each run's figure; writes
+`bench/out/throughput/results.json`.
 """
 
 from __future__ import annotations
@@ -34,6 +36,7 @@ import platform
 import re
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import threading
@@ -45,15 +48,16 @@ import torch
 from procfs import cmdline, descendants, proc_table, rss_kib, service_name
 
 from protocol import DecodeError, Keys, Params, decode, encode
+from services.config import resolve
 from services.envs import make_vector_env, space_dims
+from services.model_wire import model_for, params_message
 from services.train_config import TrainConfig
-from services.wire import fragment_to_message, load_params, model_for, params_message, run_spec
+from services.wire import fragment_to_message, policy_from_params, run_spec
 from services.zsession import open_session
-from tpdeb_core.fragments import Collector
+from tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb_core.learner import Learner
 
 ROOT = Path(__file__).resolve().parents[1]
-GOAL = 0.9
 
 PROGRESS = re.compile(r"^\[learner\] tpdeb-learner: \[\s*([\d,]+)/[\d,]+\] SPS\s+(\S+) \|"
                       r".*\| updates ([\d,]+) \|")
@@ -63,9 +67,8 @@ ACTOR_END = re.compile(r"actor (\d+) stopped \(([^)]*)\): ([\d,]+) steps, (\d+) 
 REPLAY_END = re.compile(r"tpdeb-replay: stopped \(([^)]*)\); ([\d,]+) steps ingested, (\d+) bad")
 PROBLEM = re.compile(r"traceback|error|exception|exited with code|ended with code|dropped|"
                      r"warning|no actor|did not come up", re.IGNORECASE)
-# Not problems: MuJoCo's deprecation notice on loading HalfCheetah's XML (every env prints it),
-# a clean replay stop, the learner's normal exit.
-BENIGN = re.compile(r"settotalmass|, 0 bad messages dropped|learner exited with code 0$")
+# Not problems: a clean replay stop, the learner's normal exit.
+BENIGN = re.compile(r", 0 bad messages dropped|learner exited with code 0$")
 
 
 def say(text: str) -> None:
@@ -78,107 +81,177 @@ def num(text: str) -> int:
 
 # ----------------------------------------------------------------------------- in process
 
+def timed_loop(step, seconds: float, warmup: int = 20) -> tuple[int, float]:
+    """(calls, seconds) of `step()` called repeatedly for `seconds` after `warmup` calls."""
+    for _ in range(warmup):
+        step()
+    calls, start = 0, time.perf_counter()
+    while (elapsed := time.perf_counter() - start) < seconds:
+        step()
+        calls += 1
+    return calls, elapsed
+
+
 def bench_env(env_id: str, num_envs: int, seconds: float, seed: int) -> dict:
+    """Raw stepping with precomputed random actions: what the simulator alone costs."""
     envs = make_vector_env(env_id, num_envs)
     try:
         envs.reset(seed=[seed + i for i in range(num_envs)])
         envs.action_space.seed(seed)
         actions = [envs.action_space.sample() for _ in range(1024)]
-        for i in range(200):  # warm-up
-            envs.step(actions[i % len(actions)])
-        steps, start = 0, time.perf_counter()
-        while (elapsed := time.perf_counter() - start) < seconds:
-            for i in range(100):
-                envs.step(actions[(steps + i) % len(actions)])
-            steps += 100
+        counter = iter(range(10**12))
+        calls, elapsed = timed_loop(lambda: envs.step(actions[next(counter) % 1024]), seconds)
     finally:
         envs.close()
-    return {"env_steps_per_s": steps * num_envs / elapsed, "vector_steps": steps,
-            "seconds": elapsed}
+    return {"env_steps_per_s": calls * num_envs / elapsed, "seconds": elapsed}
 
 
-def make_collector(env_id: str, num_envs: int, seed: int):
-    config = TrainConfig(env_id=env_id, num_envs=num_envs, seed=seed)
-    envs = make_vector_env(env_id, num_envs)
+def preset_config(env_id: str, num_envs: int, seed: int) -> TrainConfig:
+    """The task's configuration as the cluster resolves it (its preset included)."""
+    return resolve(TrainConfig, ["--env-id", env_id, "--num-envs", str(num_envs), "--seed",
+                                 str(seed)], "bench", "")
+
+
+def make_policy(config: TrainConfig, envs):
     spec = run_spec(config, *space_dims(envs))
     model = model_for(spec)
-    collector = Collector(envs, model, spec.fragment_len, spec.gamma, spec.action_low,
-                          spec.action_high, seed=seed)
-    return config, spec, envs, model, collector
+    return spec, model, model.numpy_policy()
 
 
-def bench_actor(env_id: str, num_envs: int, seconds: float, seed: int) -> dict:
-    torch.set_num_threads(1)
-    torch.manual_seed(seed)
-    _, _, envs, model, collector = make_collector(env_id, num_envs, seed)
+def bench_acting_limit(config: TrainConfig, seconds: float) -> dict:
+    """The plain acting loop on one core: the vector env and the same policy in numpy, actions
+    clipped to the bounds; no fragments, no learning, no messaging."""
+    envs = make_vector_env(config.env_id, config.num_envs)
     try:
-        def run(duration: float) -> tuple[int, int, int, float]:
-            steps0, frags, nbytes = collector.env_steps, 0, 0
-            start = time.perf_counter()
-            while (elapsed := time.perf_counter() - start) < duration:
-                for fragment in collector.step():
-                    nbytes += len(encode(fragment_to_message(fragment, model.reward_scale())))
-                    frags += 1
-            return collector.env_steps - steps0, frags, nbytes, elapsed
+        spec, _, policy = make_policy(config, envs)
+        obs, _ = envs.reset(seed=[config.seed + i for i in range(config.num_envs)])
+        rng = np.random.default_rng(config.seed)
+        state = {"obs": obs}
 
-        run(1.0)  # warm-up
-        steps, frags, nbytes, elapsed = run(seconds)
-        # What one parameter load costs the actor (decode + load_state_dict), measured apart:
-        # the real actor does it between env steps whenever new parameters arrived.
-        payload = encode(params_message(model, 1))
-        loads, start = 0, time.perf_counter()
-        while time.perf_counter() - start < min(2.0, seconds / 2) or loads < 20:
-            load_params(model, decode(payload, Params))
-            loads += 1
-        load_ms = 1e3 * (time.perf_counter() - start) / loads
+        def step():
+            action = policy.act(state["obs"], rng)["action"]
+            state["obs"] = envs.step(np.clip(action, spec.action_low, spec.action_high))[0]
+
+        calls, elapsed = timed_loop(step, seconds)
     finally:
         envs.close()
-    return {"env_steps_per_s": steps / elapsed, "env_steps": steps, "fragments": frags,
-            "fragment_bytes_mean": nbytes / max(frags, 1), "seconds": elapsed,
-            "torch_threads": 1, "param_load_ms": load_ms, "params_bytes": len(payload)}
+    return {"env_steps_per_s": calls * config.num_envs / elapsed, "seconds": elapsed}
 
 
-def collect_fragments(env_id: str, num_envs: int, count: int, seed: int):
-    config, spec, envs, model, collector = make_collector(env_id, num_envs, seed)
-    fragments = []
+def bench_actor(config: TrainConfig, seconds: float) -> dict:
+    """What tpdeb-actor does between network calls: the Collector (fragments, initial
+    priorities) and every fragment encoded; plus the cost of loading new parameters."""
+    envs = make_vector_env(config.env_id, config.num_envs)
     try:
-        while len(fragments) < count:
+        spec, model, policy = make_policy(config, envs)
+        collector = Collector(envs, policy, spec.fragment_len, spec.gamma, spec.action_low,
+                              spec.action_high, seed=config.seed)
+        sent = {"fragments": 0, "bytes": 0}
+
+        def step():
+            for fragment in collector.step():
+                sent["bytes"] += len(encode(fragment_to_message(fragment, 1.0)))
+                sent["fragments"] += 1
+
+        steps0 = collector.env_steps
+        timed_loop(step, 0.5)
+        steps0 = collector.env_steps
+        _, elapsed = timed_loop(step, seconds, warmup=0)
+        steps = collector.env_steps - steps0
+        payload = encode(params_message(model, 1))
+        loads, load_s = timed_loop(lambda: policy_from_params(decode(payload, Params), spec),
+                                   min(2.0, seconds / 2))
+    finally:
+        envs.close()
+    return {"env_steps_per_s": steps / elapsed, "seconds": elapsed,
+            "fragment_bytes_mean": sent["bytes"] / max(sent["fragments"], 1),
+            "param_load_ms": 1e3 * load_s / loads, "params_bytes": len(payload)}
+
+
+def sample_batches(config: TrainConfig, count: int = 32) -> tuple:
+    """Real fragments of the task (a fresh policy), stacked into `count` batches as the replay
+    server ships them."""
+    envs = make_vector_env(config.env_id, config.num_envs)
+    try:
+        spec, model, policy = make_policy(config, envs)
+        collector = Collector(envs, policy, spec.fragment_len, spec.gamma, spec.action_low,
+                              spec.action_high, seed=config.seed)
+        fragments = []
+        while len(fragments) < 64:
             fragments.extend(collector.step())
     finally:
         envs.close()
-    return config, spec, fragments[:count]
+    rng = np.random.default_rng(config.seed)
+    b = config.batch_fragments
+    batches = [stack_fragments([fragments[i] for i in rng.choice(len(fragments), b,
+                                                                 replace=False)])
+               for _ in range(count)]
+    return spec, fragments, batches
 
 
-def bench_learner(config: TrainConfig, spec, fragments, seconds: float, threads: int,
-                  seed: int) -> dict:
-    torch.set_num_threads(threads)
-    torch.manual_seed(seed)
+def bench_floor(config: TrainConfig, spec, batches, seconds: float) -> dict:
+    """The math floor of one update: forward of the policy on the batch's T·B observations and
+    of the value net on its (T+1)·B, backward and the learner's Adam, nothing else."""
+    torch.set_num_threads(config.torch_threads)
+    torch.manual_seed(config.seed)
     model = model_for(spec)
-    learner = Learner(model, config.loss_config())
+    optimizer = Learner(model, config.loss_config()).optimizer  # the learner's own settings
+    obs = [torch.tensor(b.obs) for b in batches]
+    counter = iter(range(10**12))
+
+    def step():
+        x = obs[next(counter) % len(obs)]
+        mean, log_std = model.policy(x[:-1])
+        loss = mean.square().mean() + log_std.sum() + model.value(x).square().mean()
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+
+    calls, elapsed = timed_loop(step, seconds)
+    return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed}
+
+
+def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float) -> dict:
+    """`Learner.step` on stacked batches (the learner service's work per update, without the
+    network), at the learner's thread count."""
+    torch.set_num_threads(config.torch_threads)
+    torch.manual_seed(config.seed)
+    learner = Learner(model_for(spec), config.loss_config())
     for fragment in fragments:  # realistic normaliser statistics
         learner.observe(fragment)
-    rng = np.random.default_rng(seed)
     b = config.batch_fragments
-    keys = np.arange(b, dtype=np.int64)
-    weights = np.ones(b, np.float32)
+    keys, weights = np.arange(b, dtype=np.int64), np.ones(b, np.float32)
     from_prioritized = np.arange(b) < int(round(config.zeta * b))
+    counter = iter(range(10**12))
+    calls, elapsed = timed_loop(lambda: learner.step(
+        batches[next(counter) % len(batches)], keys, weights, from_prioritized), seconds)
+    return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed,
+            "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
+            "torch_threads": config.torch_threads}
 
-    def batch():
-        return [fragments[i] for i in rng.choice(len(fragments), b, replace=False)]
 
-    for _ in range(10):  # warm-up
-        learner.step(batch(), keys, weights, from_prioritized)
-    updates, busy, start = 0, 0.0, time.perf_counter()
-    while time.perf_counter() - start < seconds:
-        picked = batch()
-        t = time.perf_counter()
-        learner.step(picked, keys, weights, from_prioritized)
-        busy += time.perf_counter() - t
-        updates += 1
-    elapsed = time.perf_counter() - start
-    return {"updates_per_s": updates / elapsed, "updates": updates, "seconds": elapsed,
-            "update_ms": 1e3 * busy / updates, "torch_threads": threads,
-            "batch_fragments": b, "fragment_len": config.fragment_len}
+def bench_imports() -> dict:
+    """Seconds to import each entry point's module in a fresh interpreter (what a process pays
+    before its first line of work)."""
+    out = {}
+    for name, module in (("router", "services.router"), ("replay", "services.replay"),
+                         ("learner", "services.learner"), ("actor", "services.actor"),
+                         ("cluster", "services.cluster")):
+        code = f"import time; t = time.perf_counter(); import {module}; " \
+               "print(time.perf_counter() - t)"
+        runs = [float(subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True,
+                                     capture_output=True, text=True).stdout) for _ in range(3)]
+        out[name] = statistics.median(runs)
+    return out
+
+
+def bench_env_construction(env_id: str, num_envs: int) -> float:
+    """Seconds to build the vector env in a fresh interpreter, imports excluded."""
+    code = ("import time; from services.envs import make_vector_env; t = time.perf_counter(); "
+            f"make_vector_env({env_id!r}, {num_envs}).close(); print(time.perf_counter() - t)")
+    return statistics.median(float(subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, check=True, capture_output=True,
+        text=True).stdout) for _ in range(3))
 
 
 # ----------------------------------------------------------------------------- processes
@@ -354,6 +427,8 @@ def run_cluster(args, actors: int, out_dir: Path) -> dict:
                 if num(m.group(3)) > 0:
                     events.setdefault("first_progress_line_with_updates", t)
                 print(f"    {line}", flush=True)
+            elif "[router] tpdeb-router: routing" in line:
+                events.setdefault("router_up", t)
             elif "[replay] tpdeb-replay: run" in line:
                 events.setdefault("replay_serving", t)
             elif "[learner] tpdeb-learner: run" in line:
@@ -463,124 +538,130 @@ def fmt(value, digits: int = 0, unit: str = "") -> str:
     return f"{value:,.{digits}f}{unit}"
 
 
-def ratio_text(value, goal: float | None = None) -> str:
-    if value is None:
-        return "n/a"
-    mark = "" if goal is None else (" ✓" if value >= goal else " ✗")
-    return f"{value:.2f}{mark}"
-
-
-def per_update(c: dict) -> str:
-    """A cluster update's wall time split into Learner.step, waiting for a batch, and the rest
-    (decoding the batch, publishing priorities and parameters, stats)."""
-    ups, step_ms = c.get("steady_updates_per_s"), c.get("learner_update_ms")
+def derive(r: dict) -> dict:
+    """The issue's ratios from one run's measurements."""
+    learner, acting = r["learner_in_memory"], r["acting_limit"]
+    learner_limit = learner["updates_per_s"] * learner["batch_steps"] / learner["replay_ratio"]
+    c = r["cluster"]
+    e2e, ups = c.get("steady_env_steps_per_s"), c.get("steady_updates_per_s")
+    lesser = min(acting["env_steps_per_s"], learner_limit)
     wait = c.get("learner_batch_wait_fraction")
-    if not ups or step_ms is None or wait is None or wait >= 1:
-        return "n/a"
-    wall_ms = 1e3 / ups
-    wait_ms = step_ms * wait / (1 - wait)
-    return (f"{wall_ms:.1f}: {step_ms:.1f} / {wait_ms:.1f} / "
-            f"{wall_ms - step_ms - wait_ms:.1f}")
+    # The learner's own wall time per update in the cluster with its waits for a batch (the
+    # rate limiter, the actors) taken out: what its plumbing costs per update.
+    busy_ups = ups / (1 - wait) if ups and wait is not None and wait < 1 else None
+    return {
+        "floor_ms": r["floor"]["update_ms"], "learner_ms": learner["update_ms"],
+        "learner_over_floor": learner["update_ms"] / r["floor"]["update_ms"],
+        "learner_updates_per_s": learner["updates_per_s"],
+        "cluster_updates_per_s": ups,
+        "cluster_over_memory_updates": ups / learner["updates_per_s"] if ups else None,
+        "cluster_busy_over_memory_updates": busy_ups / learner["updates_per_s"]
+        if busy_ups else None,
+        "acting_limit": acting["env_steps_per_s"], "learner_limit": learner_limit,
+        "actor_steps_per_s": r["actor"]["env_steps_per_s"],
+        "actor_over_acting": r["actor"]["env_steps_per_s"] / acting["env_steps_per_s"],
+        "e2e_steps_per_s": e2e,
+        "e2e_over_lesser": e2e / lesser if e2e else None,
+        "e2e_over_acting": e2e / acting["env_steps_per_s"] if e2e else None,
+        "startup_s": c.get("first_update_s"),
+        "rss_total_mib": c.get("rss_peak_total_mib"),
+        **{f"rss_{k}_mib": v for k, v in c.get("rss_peak_by_service_mib", {}).items()},
+        **{f"import_{k}_s": v for k, v in r["imports_s"].items()},
+        "env_build_s": r["env_build_s"],
+        **{f"event_{k}_s": v for k, v in c.get("events_s", {}).items()},
+    }
 
 
-def render(results: dict) -> str:
-    env, actor = results["env_limit"], results["actor"]
-    mem = results["learner_in_memory"]
-    best_mem = max(mem.values(), key=lambda r: r["updates_per_s"])
-    clusters = results["clusters"]
-    rows = [("env steps/s, raw (limit)", fmt(env["env_steps_per_s"]), "")]
-    ratio = actor["env_steps_per_s"] / env["env_steps_per_s"]
-    rows.append(("actor steps/s (policy + encode), ratio to limit",
-                 f"{fmt(actor['env_steps_per_s'])} ({ratio_text(ratio, GOAL)})", f"≥ {GOAL}"))
-    for name, r in mem.items():
-        rows.append((f"learner updates/s in memory ({name})",
-                     f"{fmt(r['updates_per_s'], 1)} ({fmt(r['update_ms'], 1)} ms/update)", ""))
-    for actors, c in clusters.items():
-        ups = c.get("steady_updates_per_s")
-        ratio = ups / best_mem["updates_per_s"] if ups is not None else None
-        rows.append((f"learner updates/s through the cluster ({actors} actor{'s' * (actors != '1')}"
-                     "), ratio", f"{fmt(ups, 1)} ({ratio_text(ratio, GOAL)})", f"≥ {GOAL}"))
-    for actors, c in clusters.items():
-        rows.append((f"end-to-end env steps/s, {actors} actor{'s' * (actors != '1')}",
-                     f"{fmt(c.get('steady_env_steps_per_s'))} (whole run "
-                     f"{fmt(c.get('e2e_env_steps_per_s_whole_run'))})", ""))
-    for actors, c in clusters.items():
-        rows.append((f"launch → first update, {actors} actor{'s' * (actors != '1')}",
-                     fmt(c.get("first_update_s"), 1, " s"), ""))
-    for actors, c in clusters.items():
-        rows.append((f"peak RSS of the cluster (sum), {actors} actor{'s' * (actors != '1')}",
-                     fmt(c.get("rss_peak_total_mib"), 0, " MiB"), ""))
-    lines = ["| measure | value | goal |", "|---|---|---|"]
-    lines += [f"| {a} | {b} | {c} |" for a, b, c in rows]
+ROWS = [  # (label, key, digits, unit, goal)
+    ("update floor: forward + backward + Adam", "floor_ms", 2, " ms", ""),
+    ("Learner.step in memory", "learner_ms", 2, " ms", ""),
+    ("learner ÷ floor", "learner_over_floor", 2, "", "≤ 1.5"),
+    ("updates/s in memory", "learner_updates_per_s", 0, "", ""),
+    ("updates/s through the cluster", "cluster_updates_per_s", 0, "", ""),
+    ("through the cluster ÷ in memory", "cluster_over_memory_updates", 2, "", "≥ 0.8"),
+    ("… with the learner's waits for a batch taken out", "cluster_busy_over_memory_updates", 2,
+     "", ""),
+    ("acting limit: plain loop, one core (env steps/s)", "acting_limit", 0, "", ""),
+    ("learner limit: updates/s × B·T ÷ replay ratio", "learner_limit", 0, "", ""),
+    ("actor alone (Collector + encode), env steps/s", "actor_steps_per_s", 0, "", ""),
+    ("actor ÷ acting limit", "actor_over_acting", 2, "", ""),
+    ("end-to-end env steps/s (cluster, steady)", "e2e_steps_per_s", 0, "", ""),
+    ("end-to-end ÷ the lesser limit", "e2e_over_lesser", 2, "", "≥ 0.8"),
+    ("end-to-end ÷ the plain loop", "e2e_over_acting", 2, "", ""),
+    ("launch → first learner update", "startup_s", 2, " s", "≤ 4"),
+    ("peak RSS of the cluster (sum)", "rss_total_mib", 0, " MiB", "≤ 800"),
+]
 
-    services = sorted({s for c in clusters.values() for s in c["rss_peak_by_service_mib"]})
-    lines += ["", "Peak RSS per service (MiB):", "",
-              "| service | " + " | ".join(f"{a} actor{'s' * (a != '1')}" for a in clusters) + " |",
-              "|---|" + "---|" * len(clusters)]
-    for s in services:
-        lines.append(f"| {s} | " + " | ".join(fmt(c["rss_peak_by_service_mib"].get(s))
-                                              for c in clusters.values()) + " |")
 
-    lines += ["", "Cluster details:", "",
-              "| | " + " | ".join(f"{a} actor{'s' * (a != '1')}" for a in clusters) + " |",
-              "|---|" + "---|" * len(clusters)]
+def render(runs: list[dict], meta: dict) -> str:
+    figures = [derive(r) for r in runs]
 
-    def detail(label: str, get) -> None:
-        lines.append(f"| {label} | " + " | ".join(get(c) for c in clusters.values()) + " |")
+    def median(key):
+        values = [f[key] for f in figures if f.get(key) is not None]
+        return statistics.median(values) if values else None
 
-    ev = "events_s"
-    detail("exit code / wall s", lambda c: f"{c['exit_code']} / {fmt(c['wall_s'], 1)}")
-    detail("replay serving (s)", lambda c: fmt(c[ev].get("replay_serving"), 1))
-    detail("learner training (s)", lambda c: fmt(c[ev].get("learner_training"), 1))
-    detail("all actors stepping (s)", lambda c: fmt(c[ev].get("all_actors_stepping"), 1))
-    detail("first update, Zenoh params v≥1 (s)", lambda c: fmt(c.get("first_update_s"), 2))
-    detail("first progress line with updates > 0 (s)",
-           lambda c: fmt(c[ev].get("first_progress_line_with_updates"), 1))
-    detail("steady window (s, rows)",
-           lambda c: f"{fmt(c.get('steady_s'), 1)}, {c.get('steady_rows', 0)}")
-    detail("learner ms/update (in cluster)", lambda c: fmt(c.get("learner_update_ms"), 1))
-    detail("learner batch-wait fraction", lambda c: fmt(c.get("learner_batch_wait_fraction"), 2))
-    detail("wall ms per update: Learner.step / waiting / rest", per_update)
-    detail("rate-limiter ceiling, updates/s", lambda c: fmt(c.get("rate_limit_updates_per_s"), 1))
-    detail("param version lag (updates)", lambda c: fmt(c.get("param_version_lag"), 1))
-    detail("fragments resent / bad messages",
-           lambda c: f"{sum(a['resent'] for a in c['actor_ends'])} / "
-                     f"{(c['replay_end'] or {}).get('bad_messages', 'n/a')}")
-    detail("problem lines in the log", lambda c: str(c["problem_lines"]))
-    detail("leftover processes killed", lambda c: str(len(c["leftover_processes"])))
-    meta = results["meta"]
-    lines += ["", f"Machine: {meta['cpu_count']} CPUs (os.cpu_count()), load average at start "
-              f"{meta['loadavg_start'][0]:.2f}, at end {meta['loadavg_end'][0]:.2f}; torch "
-              f"{meta['torch']}, default torch threads {meta['torch_default_threads']}; "
-              f"{meta['env_id']}, {meta['num_envs']} envs per actor/limit. Other processes on "
-              "the machine share the CPUs and lower every figure."]
-    lines += ["", "Notes: env steps/s count single-env steps (vector steps × envs). The actor "
-              "figure includes the policy forward pass, fragment building and msgpack encoding, "
-              f"not the network; loading parameters costs {fmt(actor['param_load_ms'], 2)} ms "
-              "each (the real actor loads at most one per env step, when new ones arrived). "
-              "Cluster rates are taken between the first learner progress line with updates > 0 "
-              "and the last one, timed by their arrival on the cluster's stdout "
-              f"(every {meta['log_interval_s']:g} s), so start-up and shutdown are excluded; the "
-              "ratio is against the best in-memory figure. With replay_ratio r the replay lets "
-              "the learner do at most r × env steps/s ÷ (B·T) updates/s (the ceiling row): "
-              "through the cluster the learner cannot beat it, whatever its own speed. "
-              "'launch → first update' is from Popen of the cluster to the arrival of parameters "
-              "with version ≥ 1 at a Zenoh client of this script (the learner publishes after "
-              "every update). RSS: VmRSS of the cluster and all descendants every 0.2 s; shared "
-              "pages count once per process, so the sum overstates physical memory."]
+    def each(key, digits):
+        return ", ".join(fmt(f.get(key), digits) for f in figures)
+
+    lines = [f"Medians of {len(runs)} run(s) (each run's figures in brackets).", "",
+             "| measure | median | runs | goal |", "|---|---|---|---|"]
+    lines += [f"| {label} | {fmt(median(key), digits, unit)} | {each(key, digits)} | {goal} |"
+              for label, key, digits, unit, goal in ROWS]
+    services = sorted({k[4:-4] for f in figures for k in f if k.startswith("rss_")
+                       and k != "rss_total_mib"})
+    lines += ["", "Peak RSS per service (MiB, medians):", "", "| service | MiB |", "|---|---|"]
+    lines += [f"| {s} | {fmt(median(f'rss_{s}_mib'))} |" for s in services]
+    lines += ["", "Start-up (seconds, medians): imports in a fresh interpreter, env construction, "
+              "and the cluster's timeline from launch:", "", "| part | s |", "|---|---|"]
+    lines += [f"| import {name} | {fmt(median(f'import_{name}_s'), 2)} |"
+              for name in ("cluster", "router", "replay", "actor", "learner")]
+    lines.append(f"| build {meta['num_envs']} × {meta['env_id']} | "
+                 f"{fmt(median('env_build_s'), 2)} |")
+    for event in ("router_up", "replay_serving", "learner_training", "first_actor_stepping",
+                  "all_actors_stepping", "first_update"):
+        key = "startup_s" if event == "first_update" else f"event_{event}_s"
+        lines.append(f"| {event.replace('_', ' ')} | {fmt(median(key), 2)} |")
+    lines += ["", f"Machine: {meta['cpu_count']} CPUs, load average {meta['loadavg_start'][0]:.2f}"
+              f" at start; torch {meta['torch']}; {meta['env_id']} with its preset "
+              f"({meta['hidden_sizes']} networks, batch {meta['batch_steps']} steps, replay ratio "
+              f"{meta['replay_ratio']:g}), {meta['actors']} actors × {meta['num_envs']} envs."]
     return "\n".join(lines)
+
+
+def measure(args, config: TrainConfig, out_dir: Path, index: int) -> dict:
+    r = {}
+    say(f"run {index}: raw env stepping, {args.seconds:g} s…")
+    r["env"] = bench_env(config.env_id, config.num_envs, args.seconds, config.seed)
+    say(f"run {index}: acting limit (plain loop), {args.seconds:g} s…")
+    r["acting_limit"] = bench_acting_limit(config, args.seconds)
+    say(f"run {index}: actor (Collector + encode), {args.seconds:g} s…")
+    r["actor"] = bench_actor(config, args.seconds)
+    spec, fragments, batches = sample_batches(config)
+    say(f"run {index}: update floor and Learner.step, {args.seconds:g} s each…")
+    r["floor"] = bench_floor(config, spec, batches, args.seconds)
+    r["learner_in_memory"] = bench_learner(config, spec, fragments, batches, args.seconds)
+    say(f"run {index}: imports and env construction…")
+    r["imports_s"] = bench_imports()
+    r["env_build_s"] = bench_env_construction(config.env_id, config.num_envs)
+    say(f"run {index}: the cluster, {args.actors} actors, {args.total_timesteps:,} steps…")
+    r["cluster"] = run_cluster(args, args.actors, out_dir)
+    f = derive(r)
+    say(f"run {index}: floor {fmt(f['floor_ms'], 2)} ms, learner {fmt(f['learner_ms'], 2)} ms, "
+        f"end-to-end {fmt(f['e2e_steps_per_s'])} env steps/s, first update at "
+        f"{fmt(f['startup_s'], 2)} s, peak RSS {fmt(f['rss_total_mib'])} MiB")
+    return r
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env-id", default="HalfCheetah-v5")
-    parser.add_argument("--num-envs", type=int, default=4, help="envs per actor (and the limit)")
+    parser.add_argument("--num-envs", type=int, default=4, help="envs per actor")
+    parser.add_argument("--actors", type=int, default=2)
     parser.add_argument("--seconds", type=float, default=10.0,
                         help="duration of each in-process measurement")
-    parser.add_argument("--total-timesteps", type=int, default=60_000, help="per cluster run")
-    parser.add_argument("--actors", type=int, nargs="*", default=[1, 2],
-                        help="cluster runs to make, by actor count (none: skip the clusters)")
+    parser.add_argument("--total-timesteps", type=int, default=150_000, help="per cluster run")
+    parser.add_argument("--repeat", type=int, default=3, help="runs; the table shows medians")
     parser.add_argument("--log-interval-s", type=float, default=2.0,
                         help="the learner's progress interval in the cluster runs")
     parser.add_argument("--cluster-timeout-s", type=float, default=900.0)
@@ -589,68 +670,30 @@ def main() -> None:
     args = parser.parse_args()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
-    default_threads = torch.get_num_threads()
+    config = preset_config(args.env_id, args.num_envs, args.seed)
     meta = {"cpu_count": os.cpu_count(), "loadavg_start": os.getloadavg(),
             "python": platform.python_version(), "torch": torch.__version__,
-            "torch_default_threads": default_threads, "env_id": args.env_id,
-            "num_envs": args.num_envs, "seconds": args.seconds,
-            "total_timesteps": args.total_timesteps, "log_interval_s": args.log_interval_s,
+            "env_id": args.env_id, "num_envs": args.num_envs, "actors": args.actors,
+            "hidden_sizes": "×".join(map(str, config.hidden_sizes)),
+            "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
+            "seconds": args.seconds, "total_timesteps": args.total_timesteps,
             "started": time.strftime("%Y-%m-%d %H:%M:%S")}
-    say(f"{os.cpu_count()} CPUs, load average {meta['loadavg_start'][0]:.2f}; "
-        f"{args.env_id}, {args.num_envs} envs")
-
-    say(f"env limit: raw stepping for {args.seconds:g} s…")
-    env = bench_env(args.env_id, args.num_envs, args.seconds, args.seed)
-    say(f"  {env['env_steps_per_s']:,.0f} env steps/s")
-
-    say(f"actor: Collector + ActorCritic + encode for {args.seconds:g} s…")
-    actor = bench_actor(args.env_id, args.num_envs, args.seconds, args.seed)
-    say(f"  {actor['env_steps_per_s']:,.0f} env steps/s "
-        f"({actor['env_steps_per_s'] / env['env_steps_per_s']:.2f} of the limit)")
-
-    config, spec, fragments = collect_fragments(args.env_id, args.num_envs, 64, args.seed)
-    mem = {}
-    for threads in sorted({1, default_threads}):
-        say(f"learner in memory, {threads} torch thread(s), for {args.seconds:g} s…")
-        r = bench_learner(config, spec, fragments, args.seconds, threads, args.seed)
-        mem[f"{threads} thread{'s' * (threads != 1)}"] = r
-        say(f"  {r['updates_per_s']:,.1f} updates/s ({r['update_ms']:.1f} ms/update)")
-    torch.set_num_threads(default_threads)
-
-    clusters = {}
-    for actors in args.actors:
-        say(f"running cluster with {actors} actor{'s' * (actors != 1)}: "
-            f"{args.total_timesteps:,} steps…")
-        c = run_cluster(args, actors, out_dir)
-        if c.get("steady_env_steps_per_s") is not None:
-            c["rate_limit_updates_per_s"] = (config.replay_ratio * c["steady_env_steps_per_s"]
-                                             / config.batch_steps)
-        clusters[str(actors)] = c
-        say(f"  exit {c['exit_code']} after {c['wall_s']:.1f} s; steady "
-            f"{fmt(c.get('steady_env_steps_per_s'))} env steps/s, "
-            f"{fmt(c.get('steady_updates_per_s'), 1)} updates/s; first update at "
-            f"{fmt(c.get('first_update_s'), 1, ' s')}; peak RSS "
-            f"{c['rss_peak_total_mib']:,.0f} MiB")
-        if c["leftover_processes"]:
-            say(f"  killed {len(c['leftover_processes'])} leftover process(es): "
-                f"{c['leftover_processes']}")
-
+    say(f"{os.cpu_count()} CPUs, load average {meta['loadavg_start'][0]:.2f}; {args.env_id}, "
+        f"{args.actors} actors × {args.num_envs} envs, {args.repeat} run(s)")
+    runs = []
+    for index in range(1, args.repeat + 1):
+        runs.append(measure(args, config, out_dir, index))
+        (out_dir / "results.json").write_text(json.dumps(
+            {"meta": meta, "runs": runs, "figures": [derive(r) for r in runs]}, indent=2))
     meta["loadavg_end"] = os.getloadavg()
-    results = {"meta": meta, "env_limit": env, "actor": actor, "learner_in_memory": mem,
-               "clusters": clusters}
-    results["actor"]["ratio_to_limit"] = actor["env_steps_per_s"] / env["env_steps_per_s"]
-    best = max(r["updates_per_s"] for r in mem.values())
-    for c in clusters.values():
-        ups = c.get("steady_updates_per_s")
-        c["updates_ratio_to_in_memory"] = ups / best if ups is not None else None
-    table = render(results)
-    results["table_markdown"] = table
-    path = out_dir / "results.json"
-    path.write_text(json.dumps(results, indent=2))
+    table = render(runs, meta)
+    (out_dir / "results.json").write_text(json.dumps(
+        {"meta": meta, "runs": runs, "figures": [derive(r) for r in runs],
+         "table_markdown": table}, indent=2))
     print()
     print(table)
     print()
-    say(f"results in {path}")
+    say(f"results in {out_dir / 'results.json'}")
 
 
 if __name__ == "__main__":

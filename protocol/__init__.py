@@ -15,6 +15,7 @@ from protocol.keys import SCHEMA_VERSION, Keys
 from protocol.messages import (
     MESSAGE_TYPES,
     Ack,
+    Batch,
     Control,
     Moments,
     Params,
@@ -27,7 +28,7 @@ from protocol.messages import (
 )
 
 __all__ = [
-    "ERROR_KINDS", "MESSAGE_TYPES", "SCHEMA_VERSION", "Ack", "Control", "DecodeError", "Keys",
-    "Moments", "Params", "PriorityUpdate", "RunSpec", "SampleReply", "SampleRequest", "Stats",
-    "Trajectory", "check_params_shapes", "decode", "encode", "encoded_size_limit",
+    "ERROR_KINDS", "MESSAGE_TYPES", "SCHEMA_VERSION", "Ack", "Batch", "Control", "DecodeError",
+    "Keys", "Moments", "Params", "PriorityUpdate", "RunSpec", "SampleReply", "SampleRequest",
+    "Stats", "Trajectory", "check_params_shapes", "decode", "encode", "encoded_size_limit",
 ]

@@ -8,15 +8,20 @@ returns a fully valid message or raises DecodeError: never half a message, never
 
 from __future__ import annotations
 
-from dataclasses import fields
-
 import msgpack
 import numpy as np
 import zstandard
 
 from protocol.keys import SCHEMA_VERSION
 from protocol.messages import MESSAGE_TYPES, Params, RunSpec
-from protocol.schema import ERROR_KINDS, WIRE_DTYPES, DecodeError, load_message, short
+from protocol.schema import (
+    ERROR_KINDS,
+    WIRE_DTYPES,
+    DecodeError,
+    field_rules,
+    load_message,
+    short,
+)
 
 __all__ = ["ERROR_KINDS", "DecodeError", "check_params_shapes", "decode", "encode",
            "encoded_size_limit"]
@@ -50,7 +55,8 @@ def _to_wire(value, where: str):
 
 
 def _body(msg, where: str) -> dict:
-    return {f.name: _to_wire(getattr(msg, f.name), f"{where}.{f.name}") for f in fields(msg)}
+    return {name: _to_wire(getattr(msg, name), f"{where}.{name}")
+            for name, _ in field_rules(type(msg))}
 
 
 COMPRESSIONS = ("none", "zstd")

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import re
 
-SCHEMA_VERSION = 4  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
+SCHEMA_VERSION = 5  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
 # per-step weights (step-level PER); 4: and no longer the number of transitions drawn (the loss
-# normalises by the weights' sum)
+# normalises by the weights' sum); 5: a sample reply carries its fragments stacked (Batch)
 
 RUN_ID_RULE = r"[A-Za-z0-9_.-]{1,64}"
 NAME_RULE = r"[A-Za-z0-9_.-]+"  # role and ident chunks: no '/', '*', '$', '?', '#' (Zenoh syntax)

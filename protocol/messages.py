@@ -151,6 +151,35 @@ class Moments:
 
 
 @dataclass(eq=False)
+class Batch:
+    """B sampled fragments stacked time-major ([T(+1), B, …]), the learner's input as it is:
+    the replay stacks once, the learner decodes a dozen arrays instead of B messages."""
+
+    obs: np.ndarray = wire(Array(F4, "T+1 B obs_dim"))  # raw
+    actions: np.ndarray = wire(Array(F4, "T B act_dim"))
+    rewards: np.ndarray = wire(Array(F4, "T B"))  # raw
+    terminated: np.ndarray = wire(Array(B1, "T B"))
+    truncated: np.ndarray = wire(Array(B1, "T B"))
+    behaviour_mean: np.ndarray = wire(Array(F4, "T B act_dim"))
+    behaviour_log_std: np.ndarray = wire(Array(F4, "T B act_dim"))
+    behaviour_logp: np.ndarray = wire(Array(F4, "T B"))
+    trunc_t: np.ndarray = wire(Array(I4, "K", ge=0))  # step of each truncation
+    trunc_b: np.ndarray = wire(Array(I4, "K", ge=0))  # its fragment
+    trunc_obs: np.ndarray = wire(Array(F4, "K obs_dim"))  # its real final observation
+    policy_version: np.ndarray = wire(Array(I8, "B"))  # each fragment's behaviour policy
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        steps, size = self.rewards.shape
+        if self.trunc_t.size and (self.trunc_t.max() >= steps or self.trunc_b.max() >= size):
+            raise DecodeError("value", f"{where}: a truncation index is outside the "
+                                       f"[T, B] = [{steps}, {size}] batch")
+        # The learner bootstraps those steps from trunc_obs: they must really be truncations.
+        if not self.truncated[self.trunc_t, self.trunc_b].all():
+            raise DecodeError("value", f"{where}.trunc_t/trunc_b name steps that are not "
+                                       "truncated")
+
+
+@dataclass(eq=False)
 class SampleReply:
     """Replay → learner: a batch (prioritized items first) or, when not ready, why not."""
 
@@ -162,7 +191,7 @@ class SampleReply:
     # "step" mode: per-step loss weights of each fragment (Σ of the importance weights of the
     # transitions drawn at that step); None in the other modes
     step_weights: np.ndarray | None = wire(OrNone(Array(F4, "B T", ge=0.0)))
-    fragments: list[Trajectory] = wire(ListOf(Nested(Trajectory), dim="B"))
+    batch: Batch | None = wire(OrNone(Nested(Batch)))  # None when not ready
     inserted_steps: int = wire(Int())
     obs_moments: Moments | None = wire(OrNone(Nested(Moments)))
     ret_moments: Moments | None = wire(OrNone(Nested(Moments)))
@@ -172,15 +201,22 @@ class SampleReply:
     def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0) -> SampleReply:
         """The empty reply: no batch, and why (e.g. "rate limiter")."""
         return cls(request_id, False, np.zeros(0, np.int64), np.zeros(0, np.float32),
-                   np.zeros(0, bool), None, [], inserted_steps, None, None, reason)
+                   np.zeros(0, bool), None, None, inserted_steps, None, None, reason)
 
     def cross_check(self, scope: Scope, where: str) -> None:
-        if not self.ready and (self.fragments or not self.reason):
+        if not self.ready and (self.batch is not None or not self.reason):
             raise DecodeError("value", f"{where}: a reply that is not ready carries no batch and "
                                        "says why")
-        shapes = {(f.obs.shape, f.actions.shape) for f in self.fragments}
-        if len(shapes) > 1:  # the learner stacks them into one [B, T] batch
-            raise DecodeError("shape", f"{where}.fragments differ in shape: {sorted(shapes)}")
+        if self.ready and self.batch is None:
+            raise DecodeError("value", f"{where}: a ready reply carries a batch")
+        if self.batch is not None:
+            steps, size = self.batch.rewards.shape
+            if size != len(self.keys):
+                raise DecodeError("shape", f"{where}.batch holds {size} fragments, keys "
+                                           f"{len(self.keys)}")
+            if self.step_weights is not None and self.step_weights.shape != (size, steps):
+                raise DecodeError("shape", f"{where}.step_weights: {self.step_weights.shape}, "
+                                           f"the batch is [B, T] = [{size}, {steps}]")
         obs_dim = scope.get("obs_dim")
         if self.obs_moments is not None and obs_dim is not None \
                 and self.obs_moments.mean.shape != (obs_dim,):
@@ -218,5 +254,5 @@ class Control:
 
 
 MESSAGE_TYPES: dict[str, type] = {cls.__name__: cls for cls in (
-    RunSpec, Trajectory, Ack, Params, SampleRequest, SampleReply, Moments, PriorityUpdate, Stats,
-    Control)}
+    RunSpec, Trajectory, Ack, Params, SampleRequest, SampleReply, Batch, Moments, PriorityUpdate,
+    Stats, Control)}

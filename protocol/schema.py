@@ -8,6 +8,7 @@ without catching anything else.
 
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass, field, fields
@@ -275,12 +276,20 @@ def array_from_wire(raw, where: str) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
+@functools.cache
+def field_rules(cls: type) -> tuple[tuple[str, object], ...]:
+    """(name, rule) of every field of a message class, in declaration order (looked up once:
+    `dataclasses.fields` per message costs more than most rules)."""
+    return tuple((f.name, f.metadata["rule"]) for f in fields(cls))
+
+
 def load_message(cls: type, body, spec, where: str | None = None):
     """Build `cls` from a decoded body, checking every field's rule, then `cls.cross_check`."""
     where = where or cls.__name__
     if type(body) is not dict:
         raise _fail_type(where, "a map body", body)
-    names = [f.name for f in fields(cls)]
+    rules = field_rules(cls)
+    names = [name for name, _ in rules]
     missing = [n for n in names if n not in body]
     extra = [short(k, 40) for k in body if k not in names]
     if missing or extra:
@@ -288,8 +297,7 @@ def load_message(cls: type, body, spec, where: str | None = None):
             [f"unknown {', '.join(extra[:5])}"] if extra else [])
         raise DecodeError("field", f"{where}: {'; '.join(problems)}")
     scope = Scope(spec)
-    values = {f.name: f.metadata["rule"].load(body[f.name], f"{where}.{f.name}", scope)
-              for f in fields(cls)}
+    values = {name: rule.load(body[name], f"{where}.{name}", scope) for name, rule in rules}
     message = cls(**values)
     if hasattr(message, "cross_check"):
         message.cross_check(scope, where)

@@ -16,7 +16,6 @@ import threading
 import time
 
 import numpy as np
-import torch
 import zenoh
 
 from protocol import (
@@ -31,9 +30,9 @@ from protocol import (
 )
 from services.config import ConfigError, resolve
 from services.envs import make_vector_env, space_dims
-from services.serial import seed_everything
+from services.seeding import seed_everything
 from services.service_config import ActorServiceConfig
-from services.wire import fragment_to_message, load_params, model_for, spec_mismatch
+from services.wire import fragment_to_message, policy_from_params, spec_mismatch
 from services.zsession import (
     RateLimitedLog,
     StopSignal,
@@ -98,10 +97,7 @@ class ActorService:
             config, spec, envs, session, stop)
         self.keys = Keys(config.run_id)
         self.log_bad = RateLimitedLog(PROG)
-        self.model = model_for(spec)
-        self.collector = Collector(
-            envs, self.model, spec.fragment_len, spec.gamma, spec.action_low, spec.action_high,
-            seed=config.seed + 1000 * config.actor_id, actor_id=config.actor_id)
+        self.collector: Collector | None = None  # made when the first parameters arrive
         self.outbox = Outbox(config.outbox_fragments)
         # A new number per process run: the replay de-duplicates by (actor, incarnation, seq),
         # so a restarted actor, whose seqs start at 0 again, is not taken for a resender.
@@ -178,7 +174,7 @@ class ActorService:
             if not self.params_wanted.wait(0.5):
                 continue
             self.params_wanted.clear()
-            selector = f"{self.keys.params_latest}?after={self.collector.policy_version}"
+            selector = f"{self.keys.params_latest}?after={self.policy_version}"
             got = False
             try:
                 for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
@@ -202,14 +198,25 @@ class ActorService:
         self.params_wanted.set()
         try:
             message = decode(data, Params, max_bytes=self.config.max_message_bytes)
-            if message.version < self.collector.policy_version:
+            if message.version < self.policy_version:
                 return False  # an older publication overtaken by a newer one
-            load_params(self.model, message)
+            policy = policy_from_params(message, self.spec)
         except DecodeError as exc:
             self.log_bad(exc.kind, f"dropped bad parameters ({exc})")
             return False
-        self.collector.sync_model(message.version)
+        if self.collector is None:
+            cfg, spec = self.config, self.spec
+            self.collector = Collector(
+                self.envs, policy, spec.fragment_len, spec.gamma, spec.action_low,
+                spec.action_high, seed=cfg.seed + 1000 * cfg.actor_id, actor_id=cfg.actor_id,
+                policy_version=message.version)
+        else:
+            self.collector.set_policy(policy, message.version)
         return True
+
+    @property
+    def policy_version(self) -> int:
+        return -1 if self.collector is None else self.collector.policy_version
 
     # -- the loop
     def run(self) -> None:
@@ -239,7 +246,8 @@ class ActorService:
             # back-pressure: wait for acks, resend the lost, keep the parameters fresh
             self.resend_due(time.monotonic())
             self.refresh_params()
-        payload = encode(fragment_to_message(fragment, self.model.reward_scale(), self.incarnation),
+        payload = encode(fragment_to_message(fragment, self.collector.policy.reward_scale(),
+                                             self.incarnation),
                          self.config.trajectory_compression)
         self.outbox.add(fragment.seq, payload, time.monotonic())
         self.traj_publisher.put(payload)
@@ -274,7 +282,6 @@ class ActorService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    torch.set_num_threads(1)
     try:
         config = resolve(ActorServiceConfig, argv, PROG,
                          "TPDEB actor: steps environments, sends fragments to the replay server.")
@@ -302,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
         if service is not None:
             service.close()
         close_session(session, PROG)
-    say(PROG, f"actor {config.actor_id} stopped ({stop.reason}): {service.collector.env_steps:,} "
+    steps = service.collector.env_steps if service.collector is not None else 0
+    say(PROG, f"actor {config.actor_id} stopped ({stop.reason}): {steps:,} "
               f"steps, {service.sent} fragments sent, {service.outbox.acked} acknowledged, "
               f"{service.resent} resent")
     return 0

@@ -499,24 +499,29 @@ class Display:
             self.latest[(stats.role, stats.ident)] = stats.values
         return stats
 
-    def line(self, health: str) -> str:
-        """Training progress from the latest stats, then `health` (Health.summary)."""
+    def parts(self, health: str) -> list[tuple[str, int]]:
+        """The status line's parts, training progress from the latest stats, then `health`
+        (Health.summary), each with its rank: where the line is wider than the terminal the
+        highest ranks go first (see `fit`)."""
         with self.lock:
             learner = self.latest.get(("learner", "0"), {})
             replay = self.latest.get(("replay", "0"), {})
             link = self.latest.get(("link", "0"))
         if not learner:
-            return f"starting… | {health}"
-        link_text = (f" | link ↑{link.get('up_bytes_per_s', 0) / 1e3:,.0f} "
-                     f"↓{link.get('down_bytes_per_s', 0) / 1e3:,.0f} kB/s") if link else ""
+            return [("starting…", 0), (health, 1)]
         step, total = int(learner.get("global_step", 0)), int(learner.get("total_timesteps", 0))
         pct = f" ({100 * step / total:.0f}%)" if total else ""
-        ret = learner.get("mean_return", math.nan)
         fill = replay.get("prioritized_items", 0), replay.get("uniform_steps", 0)
-        return (f"{step:,}/{total:,} steps{pct} | {learner.get('sps', 0):,.0f} SPS | return "
-                f"{ret:,.1f} | replay {fill[0]} fragments + {fill[1]:,} steps | lag "
-                f"{learner.get('param_version_lag', math.nan):.1f} versions | "
-                f"{int(learner.get('updates', 0)):,} updates{link_text} | {health}")
+        parts = [(f"{step:,}/{total:,} steps{pct}", 0),
+                 (f"{learner.get('sps', 0):,.0f} SPS", 2),
+                 (f"return {learner.get('mean_return', math.nan):,.1f}", 1),
+                 (f"replay {fill[0]} fragments + {fill[1]:,} steps", 7),
+                 (f"lag {learner.get('param_version_lag', math.nan):.1f} versions", 6),
+                 (f"{int(learner.get('updates', 0)):,} updates", 5)]
+        if link:
+            parts.append((f"link ↑{link.get('up_bytes_per_s', 0) / 1e3:,.0f} "
+                          f"↓{link.get('down_bytes_per_s', 0) / 1e3:,.0f} kB/s", 4))
+        return [*parts, (health, 3)]
 
     def echo(self, text: str) -> None:
         with self.lock:
@@ -527,15 +532,34 @@ class Display:
                 self.out.write(self.status)
             self.out.flush()
 
-    def show(self, status: str, plain_interval_s: float = 10.0) -> None:
+    def show(self, parts: list[tuple[str, int]], plain_interval_s: float = 10.0) -> None:
+        """On a terminal: redraw the line in place, fitted to the terminal's width now (a line
+        that wraps cannot be redrawn: each redraw would add rows). Elsewhere (a log file): the
+        whole line every `plain_interval_s`."""
         if self.tty:
+            # One column spare: writing the last one moves some terminals to the next row.
+            width = shutil.get_terminal_size((100, 24)).columns - 1
             with self.lock:
-                self.status = f"[{PROG}] {status}"
+                self.status = fit([(f"[{PROG}]", -1), *parts], width, " ")
                 self.out.write("\r\033[K" + self.status)
                 self.out.flush()
         elif time.monotonic() - self.last_plain >= plain_interval_s:
             self.last_plain = time.monotonic()
-            self.echo(f"[{PROG}] {status}")
+            self.echo(f"[{PROG}] " + " | ".join(text for text, _ in parts))
+
+
+def fit(parts: list[tuple[str, int]], width: int, first_sep: str = " | ") -> str:
+    """Join (text, rank) parts with " | " (`first_sep` after the first), dropping the highest
+    ranks until the line fits in `width` columns, then cutting it with "…"."""
+    def join(kept):
+        return (kept[0][0] + first_sep + " | ".join(t for t, _ in kept[1:])) if len(kept) > 1 \
+            else kept[0][0]
+
+    kept = list(parts)
+    while len(kept) > 2 and len(join(kept)) > width:
+        kept.remove(max(kept, key=lambda part: part[1]))
+    line = join(kept)
+    return line if len(line) <= width else line[:max(width - 1, 0)] + "…"
 
 
 class Cluster:
@@ -719,9 +743,9 @@ class Cluster:
             time.sleep(0.5)
         return 130
 
-    def status_line(self) -> str:
-        return self.display.line(self.health.summary([c.view() for c in self.children],
-                                                     time.monotonic()))
+    def status_line(self) -> list[tuple[str, int]]:
+        return self.display.parts(self.health.summary([c.view() for c in self.children],
+                                                      time.monotonic()))
 
     def tend(self) -> int | None:
         """One supervision step: notice exits, apply the restart policies, start the restarts

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import difflib
+import sys
 
 import gymnasium as gym
 import numpy as np
@@ -10,10 +11,32 @@ from gymnasium.vector import AutoresetMode
 
 from services.config import ConfigError
 
+# MuJoCo warnings that say nothing to a user: HalfCheetah's, Hopper's, Walker2d's… XML still
+# uses `settotalmass`, deprecated since MuJoCo 3.3 and harmless, printed once per env built.
+HARMLESS_MUJOCO_WARNINGS = ("compiler attribute 'settotalmass' is deprecated",)
+
+
+def mujoco_warning(message: str, out=None) -> None:
+    """MuJoCo's warning handler here: the harmless ones dropped, the rest printed as MuJoCo
+    would (to stderr)."""
+    if not message.startswith(HARMLESS_MUJOCO_WARNINGS):
+        print(f"WARNING: {message}", file=out or sys.stderr, flush=True)
+
+
+def quiet_mujoco() -> None:
+    """Install `mujoco_warning` as MuJoCo's warning handler (where MuJoCo is installed)."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+    if mujoco.get_mju_user_warning() is not mujoco_warning:
+        mujoco.set_mju_user_warning(mujoco_warning)
+
 
 def make_vector_env(env_id: str, num_envs: int) -> gym.vector.VectorEnv:
     """A synchronous vector env in SAME_STEP autoreset mode (the real final observation is in
     info["final_obs"], so no step is spent on resets). Continuous (Box) actions only."""
+    quiet_mujoco()
     try:
         envs = gym.make_vec(
             env_id, num_envs=num_envs, vectorization_mode="sync",

@@ -75,6 +75,9 @@ def load_policy(path: Path, env_id: str | None):
 def make_env(env_id: str, video: bool):
     import gymnasium as gym
 
+    from services.envs import quiet_mujoco
+
+    quiet_mujoco()
     if video:
         os.environ.setdefault("MUJOCO_GL", "egl")
     try:

@@ -56,11 +56,12 @@ from services.checkpoint import (
     spec_problem,
 )
 from services.config import ConfigError, resolve, to_toml
-from services.metrics import MetricsWriter
+from services.metrics import MetricsWriter, hyperparameter_table
+from services.model_wire import model_for, params_message
 from services.presets import shown
-from services.serial import hyperparameter_table, seed_everything
+from services.seeding import seed_everything
 from services.service_config import LearnerServiceConfig
-from services.wire import finite_values, message_to_fragment, model_for, params_message
+from services.wire import batch_of, finite_values
 from services.zsession import (
     RateLimitedLog,
     StopSignal,
@@ -94,6 +95,10 @@ class LearnerService:
             aside = set_aside(self.run_dir)
             if aside is not None:
                 say(PROG, f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
+        # The model's state tensors (views of its parameters and buffers, which every update and
+        # restore changes in place): taken once, walking the module tree per publication costs
+        # more than encoding the parameters.
+        self.state = self.model.state_dict()
         self.versions = VersionMark(checkpoint_dir(self.run_dir))
         self.version_offset = self.versions.offset(self.learner.updates, restored_version)
         if resume is not None:
@@ -192,13 +197,14 @@ class LearnerService:
         `params` key for any monitor)."""
         version = self.param_version()
         self.versions.reserve(version)  # on disk before any actor can hold this version
-        data = encode(params_message(self.model, version, self.config.params_dtype))
+        data = encode(params_message(self.state, version, self.config.params_dtype))
         with self.params_lock:
             self.params_bytes, self.params_version = data, version
             waiting, self.waiting_queries = self.waiting_queries, []
         for query in waiting:
             self._reply(query, data)
-        self.params_publisher.put(data)
+        if self.params_publisher.matching_status.matching:  # nobody listens: no copy to send
+            self.params_publisher.put(data)
 
     def _answer_latest(self, query) -> None:
         """Long poll: `params/latest?after=V` is answered as soon as a version newer than V
@@ -309,7 +315,7 @@ class LearnerService:
         if cfg.anneal_lr:
             progress = min(1.0, self.global_step / cfg.total_timesteps)
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
-        fragments = [message_to_fragment(m) for m in batch.fragments]
+        fragments = batch_of(batch.batch)
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
@@ -323,7 +329,7 @@ class LearnerService:
             self.publish_params()
         for key, value in result.metrics.items():
             self.sums[key] = self.sums.get(key, 0.0) + value
-        ages = [version - f.policy_version for f in fragments]
+        ages = (version - fragments.policy_version).tolist()
         self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
             + float(np.mean(ages))
         # Policy lag: how many versions behind the learner a fragment's behaviour policy was

@@ -3,11 +3,18 @@ both keyed by `global_step` (environment steps), with CleanRL's tag names."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
 
 from services.tb_events import EventWriter
+
+
+def hyperparameter_table(config) -> str:
+    """The configuration as a markdown table (TensorBoard's text tab), as CleanRL logs it."""
+    rows = "\n".join(f"|{k}|{v}|" for k, v in dataclasses.asdict(config).items())
+    return f"|param|value|\n|-|-|\n{rows}"
 
 
 class MetricsWriter:

@@ -40,9 +40,10 @@ from services.config import ConfigError, resolve, to_toml
 from services.envs import make_vector_env, space_dims
 from services.persistence import ReplayPersistence
 from services.service_config import ReplayServiceConfig
-from services.wire import finite_values, message_to_fragment, run_spec
+from services.wire import batch_message, finite_values, message_to_fragment, run_spec
 from services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
-from tpdeb_core.model import batch_moments, merge_moments
+from tpdeb_core.fragments import stack_fragments
+from tpdeb_core.moments import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
 _NO_MOMENTS = (0.0, 0.0, 0.0)
@@ -374,7 +375,7 @@ class ReplayServer:
             weights=sample.weights.astype(np.float32),
             from_prioritized=sample.from_prioritized.astype(bool),
             step_weights=sample.step_weights,
-            fragments=list(sample.items),
+            batch=batch_message(stack_fragments(sample.items)),
             inserted_steps=self.inserted_steps,
             obs_moments=Moments(*self.obs_moments) if self.obs_moments[0] else None,
             ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None)

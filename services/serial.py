@@ -9,9 +9,6 @@ whenever the limiter allows a sample, so the replay ratio is exact whatever the 
 
 from __future__ import annotations
 
-import copy
-import dataclasses
-import random
 import sys
 import time
 from collections import deque
@@ -23,23 +20,13 @@ import torch
 from services.checkpoint import save_training
 from services.config import ConfigError, resolve, to_toml
 from services.envs import make_vector_env, space_dims
-from services.metrics import MetricsWriter
+from services.metrics import MetricsWriter, hyperparameter_table
 from services.presets import shown
+from services.seeding import seed_everything
 from services.train_config import TrainConfig
-from tpdeb_core.fragments import Collector
+from tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb_core.learner import Learner
 from tpdeb_core.model import ActorCritic
-
-
-def seed_everything(seed: int) -> None:
-    random.seed(seed)
-    np.random.seed(seed)
-    torch.manual_seed(seed)
-
-
-def hyperparameter_table(config) -> str:
-    rows = "\n".join(f"|{k}|{v}|" for k, v in dataclasses.asdict(config).items())
-    return f"|param|value|\n|-|-|\n{rows}"
 
 
 class SerialRunner:
@@ -57,7 +44,7 @@ class SerialRunner:
         self.learner = Learner(self.model, config.loss_config())
         # The actor acts with its own copy, refreshed on publication as a remote actor would be.
         self.collector = Collector(
-            self.envs, copy.deepcopy(self.model), config.fragment_len, config.gamma, low, high,
+            self.envs, self.model.numpy_policy(), config.fragment_len, config.gamma, low, high,
             seed=config.seed)
         self.replay = config.make_replay()
         self.limiter = config.rate_limiter()
@@ -81,7 +68,7 @@ class SerialRunner:
         self.learner.observe(fragment)
         priority = fragment.initial_priority(
             self.config.priority_mode, self.config.priority_kappa, self.config.gamma,
-            self.collector.model.reward_scale())
+            self.collector.policy.reward_scale())
         self.replay.insert(fragment, priority, fragment.num_steps)
         self.limiter.on_insert(fragment.num_steps)
 
@@ -93,7 +80,7 @@ class SerialRunner:
         sample = self.replay.sample(cfg.batch_fragments, beta)
         self.limiter.on_sample(cfg.batch_steps)
         start = time.perf_counter()
-        result = self.learner.step(sample.items, sample.keys, sample.weights,
+        result = self.learner.step(stack_fragments(sample.items), sample.keys, sample.weights,
                                    sample.from_prioritized, sample.step_weights)
         self.update_time_s += time.perf_counter() - start
         self.replay.update_priorities(result.priority_keys, result.priorities)
@@ -103,7 +90,7 @@ class SerialRunner:
             self.loss_sums[key] = self.loss_sums.get(key, 0.0) + value
         self.loss_count += 1
         if self.learner.updates % cfg.params_publish_interval == 0:
-            self.collector.set_parameters(self.model.state_dict(), self.learner.updates)
+            self.collector.set_policy(self.model.numpy_policy(), self.learner.updates)
 
     def run(self) -> dict:
         cfg = self.config

@@ -1,4 +1,8 @@
-"""Between the core's objects and the wire's messages: fragments, parameters, the run spec."""
+"""Between the core's objects and the wire's messages: fragments, parameters, the run spec.
+
+Torch-free: actors and the replay server import it. The torch model's side of the parameter
+message (build one from a model, load one into it) is in services/model_wire.py.
+"""
 
 from __future__ import annotations
 
@@ -6,15 +10,15 @@ import dataclasses
 import math
 
 import numpy as np
-import torch
 
-from protocol import DecodeError, Params, RunSpec, Trajectory
+from protocol import Batch, DecodeError, Params, RunSpec, Trajectory
 from protocol.codec import check_params_shapes
 from services.train_config import TrainConfig
-from tpdeb_core.fragments import Fragment
-from tpdeb_core.model import ActorCritic
+from tpdeb_core.fragments import Fragment, FragmentBatch
+from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 _FRAGMENT_FIELDS = [f.name for f in dataclasses.fields(Fragment)]
+_BATCH_FIELDS = [f.name for f in dataclasses.fields(FragmentBatch)]
 
 
 def run_spec(config: TrainConfig, obs_dim: int, act_dim: int, low, high) -> RunSpec:
@@ -37,11 +41,6 @@ def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int) -> s
     return None
 
 
-def model_for(spec: RunSpec) -> ActorCritic:
-    return ActorCritic(spec.obs_dim, spec.act_dim, tuple(spec.hidden_sizes), spec.init_log_std,
-                       spec.obs_clip)
-
-
 def fragment_to_message(fragment: Fragment, reward_scale: float,
                         incarnation: int = 0) -> Trajectory:
     return Trajectory(reward_scale=float(reward_scale), incarnation=int(incarnation),
@@ -52,34 +51,34 @@ def message_to_fragment(message: Trajectory) -> Fragment:
     return Fragment(**{name: getattr(message, name) for name in _FRAGMENT_FIELDS})
 
 
-FLOAT16_MAX = float(np.finfo(np.float16).max)
+def batch_message(batch: FragmentBatch) -> Batch:
+    return Batch(**{name: getattr(batch, name) for name in _BATCH_FIELDS})
 
 
-def params_message(model: ActorCritic, version: int, dtype: str = "float32") -> Params:
-    """The model's state as a message; with dtype float16 the float32 weights are halved
-    (a tensor with values beyond float16's range stays float32)."""
-    arrays = {k: v.detach().cpu().numpy() for k, v in model.state_dict().items()}
-    if dtype == "float16":
-        arrays = {k: a.astype(np.float16) if a.dtype == np.float32 and (
-            a.size == 0 or np.abs(a).max() < FLOAT16_MAX) else a for k, a in arrays.items()}
-    return Params(version=int(version), arrays=arrays)
+def batch_of(message: Batch) -> FragmentBatch:
+    return FragmentBatch(**{name: getattr(message, name) for name in _BATCH_FIELDS})
 
 
-def expected_shapes(model: ActorCritic) -> dict[str, tuple[int, ...]]:
-    return {k: tuple(v.shape) for k, v in model.state_dict().items()}
+def expected_shapes(spec: RunSpec) -> dict[str, tuple[int, ...]]:
+    return param_shapes(spec.obs_dim, spec.act_dim, spec.hidden_sizes)
 
 
-def load_params(model: ActorCritic, message: Params) -> None:
-    """Load received parameters; a message that does not fit the model raises DecodeError."""
-    check_params_shapes(message, expected_shapes(model))
-    state = model.state_dict()
+def check_params(message: Params, shapes: dict[str, tuple[int, ...]]) -> None:
+    """Refuse parameters that do not fit the model (`shapes`: its arrays' names and shapes) by
+    name, shape or dtype (normaliser moments are float64, weights float32, or float16 from a
+    reduced-precision broadcast)."""
+    check_params_shapes(message, shapes)
     for name, array in message.arrays.items():
-        held = torch.empty((), dtype=state[name].dtype).numpy().dtype
+        held = np.float64 if name.endswith(("rms.count", "rms.mean", "rms.m2")) else np.float32
         if array.dtype != held and not (array.dtype == np.float16 and held == np.float32):
             raise DecodeError("dtype", f"params[{name!r}] is {array.dtype}, "
-                              f"the model holds {state[name].dtype}")
-    model.load_state_dict({k: torch.from_numpy(np.array(v, dtype=state[k].numpy().dtype))
-                           for k, v in message.arrays.items()})
+                                       f"the model holds {np.dtype(held)}")
+
+
+def policy_from_params(message: Params, spec: RunSpec) -> NumpyPolicy:
+    """The acting policy of a received parameter message (DecodeError if it does not fit)."""
+    check_params(message, expected_shapes(spec))
+    return NumpyPolicy(message.arrays, spec.obs_clip)
 
 
 def finite_values(values: dict) -> dict:

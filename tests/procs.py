@@ -101,3 +101,8 @@ def pids_with(text: str) -> list[int]:
         if text in cmdline and state != "Z":
             found.append(int(entry.name))
     return found
+
+
+def maps_torch(pid: int) -> bool:
+    """Whether the process has torch's shared library mapped (it imported torch, even lazily)."""
+    return "libtorch" in (Path("/proc") / str(pid) / "maps").read_text()

@@ -10,6 +10,7 @@ import torch
 from services.config import resolve
 from services.train_config import TrainConfig
 from tests.test_learner import fragments_and_model
+from tpdeb_core.fragments import stack_fragments
 from tpdeb_core.learner import Learner
 from tpdeb_core.model import gaussian_kl
 
@@ -42,7 +43,7 @@ def one_step(algo: str, **flags):
             t.add_(0.5 * p)
     target_before = copy.deepcopy(learner.target_policy.state_dict())
     n = len(fragments)
-    result = learner.step(fragments, np.arange(n), np.ones(n), np.zeros(n, bool))
+    result = learner.step(stack_fragments(fragments), np.arange(n), np.ones(n), np.zeros(n, bool))
     return learner, target_before, result
 
 
@@ -54,7 +55,7 @@ def test_impact_has_no_kl_term_tpdeb_does():
     for name, cfg in (("tpdeb", tpdeb_cfg), ("impact", impact_cfg)):
         learner = Learner(copy.deepcopy(model), cfg.loss_config())
         learner.config.max_grad_norm = 1e9  # compare raw gradients
-        learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+        learner.step(stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
         grads[name] = learner.model.policy.log_std.grad.clone()
     # The difference is exactly λ_kl ∂KL(μ‖π_θ)/∂θ at the same parameters.
     probe = copy.deepcopy(model)
@@ -144,12 +145,13 @@ def test_step_weights_weigh_single_transitions_in_the_loss():
     weights = np.zeros((n, 8), np.float32)
     weights[2, 3] = 4.0  # four draws of one transition: the whole batch
     learner = Learner(copy.deepcopy(model), config("ppo-per").loss_config())
-    result = learner.step(fragments, np.arange(n), np.ones(n), np.ones(n, bool), weights)
+    result = learner.step(stack_fragments(fragments), np.arange(n), np.ones(n), np.ones(n, bool),
+                          weights)
     only = [fragments[2]]
     learner2 = Learner(copy.deepcopy(model), config("ppo-per").loss_config())
     mask = np.zeros((1, 8), np.float32)
     mask[0, 3] = 1.0
-    second = learner2.step(only, np.arange(1), np.ones(1), np.ones(1, bool), mask)
+    second = learner2.step(stack_fragments(only), np.arange(1), np.ones(1), np.ones(1, bool), mask)
     # The losses of the one transition do not depend on the rest of the batch: the KL term too.
     for tag in ("losses/value_loss", "losses/kl_behaviour"):
         assert result.metrics[tag] == pytest.approx(second.metrics[tag], rel=1e-5)
@@ -166,8 +168,8 @@ def test_loss_terms_keep_their_proportions_whatever_the_scale_of_the_weights():
     steps = []
     for scale in (1.0, 1e-4):
         learner = Learner(copy.deepcopy(model), cfg)
-        result = learner.step(fragments, np.arange(n), np.ones(n), np.ones(n, bool),
-                              weights * scale)
+        result = learner.step(stack_fragments(fragments), np.arange(n), np.ones(n),
+                              np.ones(n, bool), weights * scale)
         steps.append((result.metrics, torch.nn.utils.parameters_to_vector(
             learner.model.parameters()).detach()))
     (big, after_big), (small, after_small) = steps

@@ -22,6 +22,7 @@ from services.wire import run_spec
 from services.zsession import StopSignal, open_session
 from tests.procs import Procs, free_port, pids_with
 from tests.test_learner import fragments_and_model
+from tpdeb_core.fragments import stack_fragments
 from tpdeb_core.learner import Learner, LossConfig
 from tpdeb_core.model import ActorCritic
 
@@ -93,7 +94,7 @@ def trained_learner(steps=3, seed=0) -> tuple[Learner, list]:
         learner.observe(fragment)
     n = len(fragments)
     for _ in range(steps):
-        learner.step(fragments, np.arange(n), np.ones(n, np.float32),
+        learner.step(stack_fragments(fragments), np.arange(n), np.ones(n, np.float32),
                      np.array([True, False] * (n // 2)))
     return learner, fragments
 
@@ -187,7 +188,8 @@ def test_learner_state_round_trips_through_a_checkpoint(tmp_path):
 
     # complete state: the next update is the same for the original and the restored learner
     n = len(fragments)
-    args = (fragments, np.arange(n), np.ones(n, np.float32), np.array([True, False] * (n // 2)))
+    args = (stack_fragments(fragments), np.arange(n), np.ones(n, np.float32),
+            np.array([True, False] * (n // 2)))
     a, b = learner.step(*args), fresh.step(*args)
     assert a.metrics == b.metrics
     for x, y in zip(learner.model.parameters(), fresh.model.parameters(), strict=True):
@@ -312,9 +314,11 @@ def test_killed_learner_resumes_and_actor_versions_never_go_down(tmp_path):
     procs = Procs(tmp_path)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_dir = tmp_path / "run"
-    common = ["--run-id", "ck", "--env-id", ENV, "--num-envs", "2", "--total-timesteps", "12000",
+    # long enough that the learner is still training at its first periodic checkpoint however
+    # fast the machine is
+    common = ["--run-id", "ck", "--env-id", ENV, "--num-envs", "2", "--total-timesteps", "40000",
               "--run-dir", str(run_dir)]
-    learner_args = [*common, "--connect", endpoint, "--checkpoint-interval-s", "2",
+    learner_args = [*common, "--connect", endpoint, "--checkpoint-interval-s", "1",
                     "--log-interval-s", "1"]
     session = None
     try:
@@ -349,7 +353,7 @@ def test_killed_learner_resumes_and_actor_versions_never_go_down(tmp_path):
         assert values == sorted(values), f"the actor's version went down: {values}"
         assert max(after) > max(before)  # it took the resumed learner's parameters
         steps = [r["global_step"] for r in read_metrics(run_dir / "metrics.jsonl")]
-        assert max(steps) >= 12000
+        assert max(steps) >= 40000
     finally:
         if session is not None:
             session.close()

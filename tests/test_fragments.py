@@ -10,8 +10,9 @@ T = 8
 
 def collect(same_step: bool, vector_steps: int, lengths=(5, 7), terminates=(True, False)):
     envs = ScriptedVectorEnv(lengths, terminates, same_step=same_step)
-    collector = Collector(envs, ActorCritic(3, 1), T, 0.9, np.array([-1.0], np.float32),
-                          np.array([1.0], np.float32), seed=3, same_step_autoreset=same_step)
+    collector = Collector(envs, ActorCritic(3, 1).numpy_policy(), T, 0.9,
+                          np.array([-1.0], np.float32), np.array([1.0], np.float32), seed=3,
+                          same_step_autoreset=same_step)
     fragments = []
     for _ in range(vector_steps):
         fragments += collector.step()
@@ -71,14 +72,14 @@ def test_both_autoreset_modes_record_the_same_transitions():
 
 def test_initial_td_errors_use_the_actor_value_net_and_bootstrap_rules():
     collector, fragments = collect(True, 40)
-    model, gamma = collector.model, 0.9
+    policy, gamma = collector.policy, 0.9
     for f in fragments:
-        values = model.values_of(f.obs)
+        values = policy.values_of(f.obs)
         np.testing.assert_allclose(f.values, values, rtol=1e-5, atol=1e-6)
         next_values = values[1:].astype(np.float64)
         if len(f.trunc_index):
-            next_values[f.trunc_index] = model.values_of(f.trunc_obs)
-        td = f.rewards * model.reward_scale() + gamma * (~f.terminated) * next_values - values[:-1]
+            next_values[f.trunc_index] = policy.values_of(f.trunc_obs)
+        td = f.rewards * policy.reward_scale() + gamma * (~f.terminated) * next_values - values[:-1]
         np.testing.assert_allclose(f.td_abs, np.abs(td), rtol=1e-4, atol=1e-5)
 
 

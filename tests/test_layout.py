@@ -5,6 +5,11 @@ import subprocess
 import sys
 from pathlib import Path
 
+try:
+    import tomllib
+except ModuleNotFoundError:  # Python 3.10
+    import tomli as tomllib
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # tpdeb_core: torch, numpy and side-effect-free standard modules only (no files, no clocks)
@@ -46,10 +51,38 @@ def test_layout_directories_exist():
         assert (ROOT / name).is_dir(), name
 
 
-def test_router_link_and_launcher_start_without_torch():
-    # they only route, shape or supervise: torch would add over 200 MiB to each
-    code = ("import sys, services.router, services.link, services.cluster; "
-            "services.router.RouterConfig(); "  # validating a config must not need it either
+# The entry points that train or evaluate a network; every other one must not load torch (over
+# 200 MiB and a second of start-up per process: actors act with numpy, the replay never runs a
+# network).
+TORCH_ENTRY_POINTS = {"tpdeb-learner", "tpdeb-train", "tpdeb-eval"}
+
+
+def entry_points() -> dict[str, str]:
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    return {name: target.split(":")[0] for name, target in scripts.items()}
+
+
+def test_the_entry_points_are_known():
+    assert entry_points().keys() >= TORCH_ENTRY_POINTS
+    assert {"tpdeb-actor", "tpdeb-replay", "tpdeb-router", "tpdeb-link",
+            "tpdeb-cluster"} <= entry_points().keys()
+
+
+def test_only_the_training_and_evaluating_entry_points_import_torch():
+    modules = entry_points()
+    found = {}
+    for name, module in modules.items():
+        out = subprocess.run([sys.executable, "-c", f"import {module}, sys; "
+                              "print('torch' in sys.modules)"], cwd=ROOT, capture_output=True,
+                             text=True, check=True)
+        found[name] = out.stdout.strip() == "True"
+    light = sorted(name for name, has in found.items() if has and name not in TORCH_ENTRY_POINTS)
+    assert not light, f"these entry points import torch: {light}"
+    assert found["tpdeb-learner"] and found["tpdeb-train"]  # the check sees torch where it is
+
+
+def test_router_config_validates_without_torch():
+    code = ("import sys, services.router; services.router.RouterConfig(); "
             "print('torch' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                          check=True)

@@ -1,20 +1,23 @@
+import copy
 import math
 
 import numpy as np
 import pytest
 import torch
+from torch.distributions import Independent, Normal, kl_divergence
 
 from tests.fakes import ScriptedVectorEnv
-from tpdeb_core.fragments import Collector
+from tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb_core.learner import Learner, LossConfig, impact_surrogate
 from tpdeb_core.model import ActorCritic
+from tpdeb_core.vtrace import vtrace_terms
 
 
 def fragments_and_model(n=6, seed=0):
     torch.manual_seed(seed)
     model = ActorCritic(3, 1)
     envs = ScriptedVectorEnv([5, 7, 9], [True, False, False])
-    collector = Collector(envs, model, 8, 0.99, np.array([-1.0], np.float32),
+    collector = Collector(envs, model.numpy_policy(), 8, 0.99, np.array([-1.0], np.float32),
                           np.array([1.0], np.float32), seed=seed)
     fragments = []
     while len(fragments) < n:
@@ -56,7 +59,7 @@ def test_first_update_is_on_policy_and_target_moves_by_tau():
     before = [p.detach().clone() for p in learner.target_policy.parameters()]
     keys = np.arange(len(fragments))
     prioritized = np.array([True, False] * 3)
-    result = learner.step(fragments, keys, np.ones(len(fragments)), prioritized)
+    result = learner.step(stack_fragments(fragments), keys, np.ones(len(fragments)), prioritized)
     m = result.metrics
     # the actor acted with exactly this model: μ = π_θ = π_θ̄, nothing clipped, no KL yet
     assert m["losses/kl_behaviour"] == pytest.approx(0.0, abs=1e-6)
@@ -78,8 +81,8 @@ def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
     for mode in ("trajectory", "step"):
         model.load_state_dict(state)
         learner = Learner(model, LossConfig(priority_mode=mode))
-        results[mode] = learner.step(fragments, np.arange(6), np.ones(6), np.ones(6, bool),
-                                     step_weights=np.ones((6, 8), np.float32))
+        results[mode] = learner.step(stack_fragments(fragments), np.arange(6), np.ones(6),
+                                     np.ones(6, bool), step_weights=np.ones((6, 8), np.float32))
     for total, per_step in zip(results["trajectory"].priorities, results["step"].priorities,
                                strict=True):
         assert per_step.shape == (8,)
@@ -89,17 +92,83 @@ def test_step_mode_priorities_are_per_step_and_sum_to_trajectory_priorities():
 def test_adaptive_kl_coefficient_moves_toward_target():
     fragments, model = fragments_and_model()
     learner = Learner(model, LossConfig(kl_coef=0.1, kl_target=1.0))
-    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    learner.step(stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
     assert learner.kl_coef == pytest.approx(0.05)  # KL ≈ 0 < target/1.5: halved
 
 
 def test_learner_state_round_trip():
     fragments, model = fragments_and_model()
     learner = Learner(model, LossConfig())
-    learner.step(fragments, np.arange(6), np.ones(6), np.zeros(6, bool))
+    learner.step(stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
     other = Learner(ActorCritic(3, 1), LossConfig())
     other.load_state_dict(learner.state_dict())
     assert other.updates == 1
     for a, b in zip(other.target_policy.parameters(), learner.target_policy.parameters(),
                     strict=True):
         torch.testing.assert_close(a, b)
+
+
+def reference_update(model, target_policy, batch, weights, cfg: LossConfig, kl_coef: float):
+    """The loss written plainly (torch.distributions, the tensors' own ops, torch.optim.Adam):
+    what Learner.step's reduced terms must equal. Returns the loss terms after one Adam step."""
+    obs = model.norm_obs(torch.tensor(batch.obs))
+    actions = torch.tensor(batch.actions)
+    dist = Independent(Normal(*model.policy(obs[:-1])[:1], model.policy.log_std.exp()), 1)
+    logp = dist.log_prob(actions)
+    values = model.value(obs)
+    with torch.no_grad():
+        t_mean, t_log_std = target_policy(obs[:-1])
+        target_logp = Independent(Normal(t_mean, t_log_std.exp()), 1).log_prob(actions)
+        rewards = torch.tensor(batch.rewards) * model.reward_scale()
+        discounts = cfg.gamma * torch.tensor(~(batch.terminated | batch.truncated)).float()
+        for t, b, o in zip(batch.trunc_t, batch.trunc_b, batch.trunc_obs, strict=True):
+            if not batch.terminated[t, b]:
+                rewards[t, b] += cfg.gamma * model.value(model.norm_obs(torch.tensor(o)))
+        behaviour_logp = torch.tensor(batch.behaviour_logp)
+        vt = vtrace_terms(behaviour_logp, target_logp, rewards, values[:-1].detach(),
+                          values[-1].detach(), discounts, lambda_=cfg.vtrace_lambda)
+        adv = (vt.pg_advantages - vt.pg_advantages.mean()) / (vt.pg_advantages.std() + 1e-8)
+    w = torch.tensor(weights, dtype=torch.float32).expand_as(rewards)
+    w = w / w.sum()
+    surrogate, _ = impact_surrogate(logp, behaviour_logp, target_logp, adv, cfg.clip_coef,
+                                    cfg.rho_target_bar)
+    behaviour = Independent(Normal(torch.tensor(batch.behaviour_mean),
+                                   torch.tensor(batch.behaviour_log_std).exp()), 1)
+    terms = {"pg": (surrogate * w).sum(), "value": 0.5 * ((values[:-1] - vt.vs) ** 2 * w).sum(),
+             "entropy": (dist.entropy() * w).sum(),
+             "kl": (kl_divergence(behaviour, dist) * w).sum()}
+    loss = (terms["pg"] + cfg.vf_coef * terms["value"] - cfg.ent_coef * terms["entropy"]
+            + kl_coef * terms["kl"])
+    optimizer = torch.optim.Adam(model.parameters(), lr=cfg.learning_rate, eps=cfg.adam_eps)
+    loss.backward()
+    torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+    optimizer.step()
+    return {k: v.item() for k, v in terms.items()}
+
+
+def test_step_equals_the_plainly_written_loss_off_policy_with_truncations_and_weights():
+    fragments, model = fragments_and_model(n=6, seed=3)
+    batch = stack_fragments(fragments)
+    assert len(batch.trunc_t) and batch.terminated.any()  # both episode ends are in the batch
+    model.obs_rms.update(np.random.default_rng(0).normal(size=(50, 3)))
+    model.ret_rms.update(np.random.default_rng(1).normal(0, 3, size=50))
+    cfg = LossConfig(kl_coef=0.3, ent_coef=0.01, vtrace_lambda=0.95, learning_rate=1e-3)
+    learner = Learner(model, cfg)
+    with torch.no_grad():  # π_θ, π_θ̄ and μ all differ
+        for p in model.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+        learner.target_policy.log_std.add_(0.1)
+    reference_model = copy.deepcopy(model)
+    target = copy.deepcopy(learner.target_policy)
+    weights = np.array([0.2, 1.0, 0.5, 1.0, 0.7, 1.0], np.float32)
+    expected = reference_update(reference_model, target, batch, weights, cfg, cfg.kl_coef)
+    m = learner.step(batch, np.arange(6), weights, np.zeros(6, bool)).metrics
+    assert m["losses/policy_loss"] == pytest.approx(expected["pg"], rel=1e-4, abs=1e-6)
+    assert m["losses/value_loss"] == pytest.approx(expected["value"], rel=1e-4)
+    assert m["losses/entropy"] == pytest.approx(expected["entropy"], rel=1e-5)
+    assert m["losses/kl_behaviour"] == pytest.approx(expected["kl"], rel=1e-4)
+    assert expected["kl"] > 1e-3 and m["losses/clipfrac"] > 0  # the terms were exercised
+    for mine, theirs in zip(model.parameters(), reference_model.parameters(), strict=True):
+        # the (clipped) gradients: Adam's first step alone would only compare their signs
+        torch.testing.assert_close(mine.grad, theirs.grad, rtol=1e-3, atol=1e-6)
+        torch.testing.assert_close(mine, theirs, rtol=1e-4, atol=1e-6)

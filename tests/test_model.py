@@ -1,16 +1,18 @@
 import numpy as np
+import pytest
 import torch
 from torch.distributions import Independent, Normal, kl_divergence
 
+from services.wire import check_params
 from tpdeb_core.model import (
     ActorCritic,
-    NumpyActor,
     RunningMeanStd,
-    batch_moments,
     gaussian_entropy,
     gaussian_kl,
     gaussian_log_prob,
 )
+from tpdeb_core.moments import batch_moments
+from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 
 def normal(mean, log_std):
@@ -68,14 +70,16 @@ def test_act_logp_is_of_the_raw_sample():
     np.testing.assert_allclose(out["logp"], expected.numpy(), rtol=1e-5)
 
 
-def test_numpy_actor_matches_the_torch_model():
+def test_numpy_policy_matches_the_torch_model_to_float32_tolerance():
     torch.manual_seed(0)
     model = ActorCritic(5, 3, (16, 16), init_log_std=-0.3)
     model.obs_rms.update(np.random.default_rng(1).normal(2.0, 3.0, (100, 5)))
+    model.ret_rms.update(np.random.default_rng(4).normal(0.0, 7.0, 100))
     with torch.no_grad():
         model.policy.log_std.add_(torch.tensor([0.1, -0.2, 0.3]))
-    fast = NumpyActor(model)
+    fast = NumpyPolicy(model.arrays(), model.obs_clip)
     obs = np.random.default_rng(2).normal(2.0, 3.0, (7, 5)).astype(np.float32)
+    obs[0, 0] = 1e3  # beyond the observation clip
     out = fast.act(obs, np.random.default_rng(3))
     with torch.no_grad():
         mean, log_std = model.policy(model.norm_obs(torch.as_tensor(obs)))
@@ -85,8 +89,35 @@ def test_numpy_actor_matches_the_torch_model():
     np.testing.assert_allclose(out["logp"], logp.numpy(), rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(out["value"], model.values_of(obs), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(fast.values_of(obs), model.values_of(obs), rtol=1e-5, atol=1e-6)
-    with torch.no_grad():  # after a parameter change the copy follows only on sync
+    np.testing.assert_allclose(fast.act_deterministic(obs), model.act_deterministic(obs),
+                               rtol=1e-5, atol=1e-6)
+    assert fast.reward_scale() == pytest.approx(model.reward_scale(), rel=1e-6)
+    with torch.no_grad():  # a copy: it does not follow later changes of the model
         model.value_net[0].bias.add_(1.0)
     assert not np.allclose(fast.values_of(obs), model.values_of(obs))
-    fast.sync(model)
-    np.testing.assert_allclose(fast.values_of(obs), model.values_of(obs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(model.numpy_policy().values_of(obs), model.values_of(obs),
+                               rtol=1e-5, atol=1e-6)
+
+
+def test_numpy_policy_of_a_fresh_model_does_not_normalise():
+    """Before any moments arrive (count 0) the normaliser passes observations through."""
+    model = ActorCritic(4, 2)
+    obs = np.random.default_rng(0).normal(size=(3, 4)).astype(np.float32)
+    np.testing.assert_allclose(model.numpy_policy().values_of(obs), model.values_of(obs),
+                               rtol=1e-5, atol=1e-6)
+    assert model.numpy_policy().reward_scale() == pytest.approx(1.0, rel=1e-6)
+
+
+@pytest.mark.parametrize("hidden", [(64, 64), (256, 256), (32, 16, 8)])
+def test_param_shapes_are_the_torch_models_state(hidden):
+    """Actors check parameters against these shapes without building the torch model."""
+    model = ActorCritic(11, 3, hidden)
+    state = {k: tuple(v.shape) for k, v in model.state_dict().items()}
+    assert param_shapes(11, 3, hidden) == state
+    check_params(model_params(model), param_shapes(11, 3, hidden))  # dtypes fit as well
+
+
+def model_params(model):
+    from protocol import Params
+
+    return Params(version=0, arrays=model.arrays())

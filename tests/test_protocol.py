@@ -15,6 +15,7 @@ from protocol import (
     MESSAGE_TYPES,
     SCHEMA_VERSION,
     Ack,
+    Batch,
     Control,
     DecodeError,
     Keys,
@@ -30,6 +31,8 @@ from protocol import (
     decode,
     encode,
 )
+from services.wire import batch_message
+from tpdeb_core.fragments import stack_fragments
 
 T, OBS_DIM, ACT_DIM = 4, 3, 2
 SPEC = RunSpec("Hopper-v5", OBS_DIM, ACT_DIM, T, [64, 64], 0.99, 10.0, 0.0, "trajectory", 0.0,
@@ -70,12 +73,16 @@ def make_moments(shape) -> Moments:
                    np.ones(shape, np.float64))
 
 
+def make_batch(*fragments: Trajectory) -> Batch:
+    return batch_message(stack_fragments(fragments))
+
+
 def make_reply() -> SampleReply:
     return SampleReply(
         request_id=9, ready=True, keys=np.array([5, 11], np.int64),
         weights=np.array([0.5, 1.0], np.float32), from_prioritized=np.array([True, False]),
         step_weights=np.array([[0.0, 0.5, 1.5, 0.0], [1.0] * T], np.float32),
-        fragments=[make_traj(1), make_traj(2)], inserted_steps=640,
+        batch=make_batch(make_traj(1), make_traj(2)), inserted_steps=640,
         obs_moments=make_moments((OBS_DIM,)), ret_moments=make_moments(()))
 
 
@@ -87,6 +94,7 @@ MESSAGES = {
                          "norm.count": np.array(5, np.int64)}),
     "SampleRequest": SampleRequest(1, 8, 0.4),
     "SampleReply": make_reply(),
+    "Batch": make_batch(make_traj(1), make_traj(2), make_traj(3)),
     "SampleReply.not_ready": SampleReply.not_ready(2, "rate limiter", inserted_steps=64),
     "Moments": make_moments((OBS_DIM,)),
     "PriorityUpdate": PriorityUpdate(np.array([5, 11], np.int64), np.array([0.1, 2.0])),
@@ -140,7 +148,7 @@ def test_round_trip_every_message(name):
 
 def test_round_trip_details():
     reply = decode(encode(MESSAGES["SampleReply"]), SampleReply, spec=SPEC)
-    assert len(reply.fragments) == 2 and reply.ret_moments.mean.shape == ()
+    assert reply.batch.rewards.shape == (T, 2) and reply.ret_moments.mean.shape == ()
     params = decode(encode(MESSAGES["Params"]), Params)
     assert params.arrays["norm.count"].shape == () and params.arrays["norm.count"] == 5
     step = decode(encode(MESSAGES["PriorityUpdate.step"]), PriorityUpdate)
@@ -271,7 +279,7 @@ BAD_INPUTS = [  # (kind, bytes, expected types, decode keyword arguments)
     ("field", tampered(TRAJ, seq=True), Trajectory, {}),
     ("field", tampered(TRAJ, seq="3"), Trajectory, {}),
     ("field", tampered(TRAJ, rewards=[1.0, 2.0, 3.0, 4.0]), Trajectory, {}),
-    ("field", tampered(MESSAGES["SampleReply"], fragments=[{"seq": 1}, {}]), SampleReply, {}),
+    ("field", tampered(MESSAGES["SampleReply"], batch={"obs": 1}), SampleReply, {}),
     ("dtype", tampered(TRAJ, rewards=nd("<f8", [T], R.astype("<f8").tobytes())), Trajectory, {}),
     ("dtype", tampered(TRAJ, rewards=nd("<f2", [T], R.astype("<f2").tobytes())), Trajectory, {}),
     ("dtype", tampered(TRAJ, rewards=nd(">f4", [T], R.astype(">f4").tobytes())), Trajectory, {}),
@@ -318,17 +326,27 @@ def test_error_messages_name_what_went_wrong():
     assert "7" in err.value.detail and str(SCHEMA_VERSION) in err.value.detail
     with pytest.raises(DecodeError, match="obs_dim=4, but obs_dim=3 from the run spec"):
         decode(encode(make_traj(obs_dim=OBS_DIM + 1)), Trajectory, spec=SPEC)
-    with pytest.raises(DecodeError, match=r"SampleReply\.fragments\[1\]\.rewards"):
+    with pytest.raises(DecodeError, match=r"SampleReply\.batch\.rewards"):
         bad = dataclasses.replace(make_traj(2), rewards=np.full(T, np.inf, np.float32))
-        decode(encode(dataclasses.replace(make_reply(), fragments=[make_traj(1), bad])),
+        decode(encode(dataclasses.replace(make_reply(), batch=make_batch(make_traj(1), bad))),
                SampleReply)
 
 
-def test_fragments_of_one_reply_share_a_shape():
-    mixed = dataclasses.replace(make_reply(), fragments=[make_traj(1), make_traj(2, steps=T + 1)])
-    with pytest.raises(DecodeError) as err:
-        decode(encode(mixed), SampleReply)
+def test_a_batch_must_fit_its_reply_and_name_real_truncations():
+    three = dataclasses.replace(make_reply(), batch=make_batch(*(make_traj(i) for i in range(3))))
+    with pytest.raises(DecodeError, match="holds 3 fragments, keys 2") as err:
+        decode(encode(three), SampleReply)
     assert err.value.kind == "shape"
+    longer = dataclasses.replace(make_reply(), step_weights=np.ones((2, T + 1), np.float32))
+    with pytest.raises(DecodeError, match="step_weights") as err:
+        decode(encode(longer), SampleReply)
+    batch = make_batch(make_traj(1), make_traj(2))
+    for field_name, value in (("trunc_b", np.array([0, 2], np.int32)),
+                              ("trunc_t", np.array([0, 1], np.int32))):  # step 0 is not truncated
+        with pytest.raises(DecodeError) as err:
+            decode(encode(dataclasses.replace(batch, **{field_name: value})), Batch)
+        assert err.value.kind == "value"
+    assert decode(encode(batch), Batch, spec=SPEC).obs.shape == (T + 1, 2, OBS_DIM)
 
 
 # ------------------------------------------------------------------------------- fuzzing

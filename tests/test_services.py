@@ -17,7 +17,7 @@ import zenoh
 from protocol import SCHEMA_VERSION, Keys, SampleReply, SampleRequest, Stats, decode, encode
 from services.metrics import read_metrics
 from services.zsession import fetch_spec, open_session
-from tests.procs import pids_with
+from tests.procs import maps_torch, pids_with
 
 ENV = "InvertedPendulum-v5"
 
@@ -139,12 +139,15 @@ def test_actor_refuses_another_schema_version(procs, endpoint):
 def test_killed_actor_does_not_stop_the_run(procs, endpoint, client, tmp_path):
     common = ["--run-id", "t", "--env-id", ENV, "--num-envs", "2", "--total-timesteps", "20000",
               "--run-dir", str(tmp_path / "run")]
-    start_replay(procs, endpoint, tmp_path, *common[4:])
+    replay = start_replay(procs, endpoint, tmp_path, *common[4:])
     learner = procs.spawn("learner", *common, "--connect", endpoint)
     actors = [procs.spawn("actor", *common, "--connect", endpoint, "--actor-id", str(i),
                           name=f"actor-{i}") for i in range(2)]
     inbox = watch_stats(client(), Keys("t"))
     next_stats(inbox, "learner", lambda v: v.get("global_step", 0) >= 4000, timeout_s=120)
+    # while they run: actors and the replay act, prioritise and sample without torch
+    assert [maps_torch(p.pid) for p in (replay, *actors)] == [False, False, False]
+    assert maps_torch(learner.pid)
     os.kill(actors[0].pid, signal.SIGKILL)
     assert learner.wait(240) == 0, procs.output(learner)
     assert actors[1].wait(30) == 0, procs.output(actors[1])

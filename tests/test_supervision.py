@@ -17,11 +17,13 @@ from services.cluster import (
     MAX_BACKOFF_S,
     Child,
     Cluster,
+    Display,
     Health,
     RestartPolicy,
     RestartSettings,
     RestartTracker,
     ServiceView,
+    fit,
     make_plan,
     parse_args,
     stats_interval_s,
@@ -164,6 +166,46 @@ def test_health_shows_restarts_and_stale_stats():
                     "restarts: replay 1, actor-0 2")
     health.restarted("replay", "0")  # its predecessor's stats do not make it stale
     assert "replay" not in health.summary(views(), 103.5).split("stale:")[1]
+
+
+def test_fit_drops_the_least_important_parts_first_then_cuts():
+    parts = [("[c]", -1), ("10/100 steps", 0), ("return 5.0", 1), ("replay 3 fragments", 7),
+             ("lag 2.0 versions", 6)]
+    assert fit(parts, 200, " ") == "[c] 10/100 steps | return 5.0 | replay 3 fragments | lag " \
+                                   "2.0 versions"
+    assert fit(parts, 50, " ") == "[c] 10/100 steps | return 5.0 | lag 2.0 versions"
+    assert fit(parts, 30, " ") == "[c] 10/100 steps | return 5.0"
+    assert fit(parts, 12, " ") == "[c] 10/100 …"
+
+
+class Terminal(io.StringIO):
+    def isatty(self):
+        return True
+
+
+def test_the_status_line_fits_the_terminal_and_redraws_in_place(monkeypatch):
+    out = Terminal()
+    display = Display(out)
+    display.latest[("learner", "0")] = {
+        "global_step": 123456, "total_timesteps": 1000000, "sps": 4321.0, "mean_return": 1234.5,
+        "param_version_lag": 12.3, "updates": 45678}
+    display.latest[("replay", "0")] = {"prioritized_items": 64, "uniform_steps": 8192}
+    health = "up: router replay learner actors 2/2 | restarts: actor-0 1"
+    full = " | ".join(text for text, _ in display.parts(health))
+    for columns in (200, 100, 80):
+        monkeypatch.setattr("shutil.get_terminal_size", lambda *a, c=columns: os.terminal_size(
+            (c, 24)))
+        out.seek(0)
+        out.truncate()
+        display.show(display.parts(health))
+        display.show(display.parts(health))
+        written = out.getvalue()
+        assert "\n" not in written  # redrawn in place, never a new row
+        frames = written.split("\r\033[K")[1:]
+        assert len(frames) == 2 and all(len(f) <= columns - 1 for f in frames), frames
+        assert frames[0].startswith("[tpdeb-cluster] 123,456/1,000,000 steps (12%)")
+        assert "return 1,234.5" in frames[0]  # the most important parts stay
+    assert len(f"[tpdeb-cluster] {full}") > 79  # the 80-column case really had to fit
 
 
 # -- the supervisor's decisions, on stand-in processes

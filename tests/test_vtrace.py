@@ -1,7 +1,8 @@
 import numpy as np
+import pytest
 import torch
 
-from tpdeb_core.vtrace import vtrace, vtrace_terms
+from tpdeb_core.vtrace import discounted_sums, vtrace, vtrace_terms
 
 
 def reference_vtrace(b_logp, t_logp, rewards, values, bootstrap, discounts, rho_bar, c_bar,
@@ -70,3 +71,16 @@ def test_termination_stops_the_trace():
     # steps 0-1 form an episode that terminates after step 1; steps 2-3 bootstrap on 10
     np.testing.assert_allclose(terms.vs[:, 0].numpy(), [3.0, 2.0, 17.0, 14.0])
     np.testing.assert_allclose(terms.deltas[:, 0].numpy(), [1.0, 2.0, 3.0, 14.0])
+
+
+@pytest.mark.parametrize("steps", [1, 2, 5, 64, 65, 100])
+def test_the_doubling_scan_equals_the_backward_loop(steps):
+    rng = np.random.default_rng(steps)
+    x = rng.normal(size=(steps, 3)).astype(np.float32)
+    decay = (rng.uniform(0, 1, size=(steps, 3)) * (rng.uniform(size=(steps, 3)) > 0.1)
+             ).astype(np.float32)  # with zeros, as at terminations
+    expected, acc = np.zeros_like(x), np.zeros(3, np.float32)
+    for t in range(steps - 1, -1, -1):
+        acc = x[t] + decay[t] * acc
+        expected[t] = acc
+    np.testing.assert_allclose(discounted_sums(x, decay), expected, rtol=1e-5, atol=1e-6)

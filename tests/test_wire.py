@@ -5,7 +5,8 @@ import numpy as np
 import torch
 
 from protocol import Params, Trajectory, decode, encode
-from services.wire import fragment_to_message, load_params, message_to_fragment, params_message
+from services.model_wire import load_params, params_message
+from services.wire import fragment_to_message, message_to_fragment
 from tests.fakes import ScriptedVectorEnv
 from tpdeb_core.fragments import Collector
 from tpdeb_core.model import ActorCritic
@@ -13,8 +14,8 @@ from tpdeb_core.model import ActorCritic
 
 def test_fragment_round_trip_through_the_codec_compressed_or_not():
     envs = ScriptedVectorEnv((5, 7), (True, False))
-    collector = Collector(envs, ActorCritic(3, 1), 8, 0.9, np.array([-1.0], np.float32),
-                          np.array([1.0], np.float32), seed=1)
+    collector = Collector(envs, ActorCritic(3, 1).numpy_policy(), 8, 0.9,
+                          np.array([-1.0], np.float32), np.array([1.0], np.float32), seed=1)
     fragments = []
     while len(fragments) < 4:
         fragments += collector.step()

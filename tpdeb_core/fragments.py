@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tpdeb_core.model import ActorCritic, NumpyActor
+from tpdeb_core.numpy_policy import NumpyPolicy
 from tpdeb_core.replay import PRIORITY_MODES
 
 
@@ -51,6 +51,51 @@ class Fragment:
     def initial_priority(self, mode: str, kappa: float, gamma: float, reward_scale: float):
         return fragment_priority(self.td_abs, mode, kappa, self.rewards * reward_scale,
                                  self.discounts(gamma))
+
+
+# The per-step fields the learner trains on, stacked along a new batch axis 1.
+BATCH_STEP_FIELDS = ("obs", "actions", "rewards", "terminated", "truncated", "behaviour_mean",
+                     "behaviour_log_std", "behaviour_logp")
+
+
+@dataclass
+class FragmentBatch:
+    """B fragments stacked time-major, what `Learner.step` trains on. The replay server builds
+    it once per sample and ships it as it is; the learner does no per-fragment work."""
+
+    obs: np.ndarray  # float32 [T+1, B, obs_dim], raw
+    actions: np.ndarray  # float32 [T, B, act_dim]
+    rewards: np.ndarray  # float32 [T, B], raw
+    terminated: np.ndarray  # bool [T, B]
+    truncated: np.ndarray  # bool [T, B]
+    behaviour_mean: np.ndarray  # float32 [T, B, act_dim]
+    behaviour_log_std: np.ndarray  # float32 [T, B, act_dim]
+    behaviour_logp: np.ndarray  # float32 [T, B]
+    trunc_t: np.ndarray  # int32 [K], time index of each truncated step
+    trunc_b: np.ndarray  # int32 [K], its fragment
+    trunc_obs: np.ndarray  # float32 [K, obs_dim], its real final observation
+    policy_version: np.ndarray  # int64 [B], the behaviour policy of each fragment
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(T, B)."""
+        return self.rewards.shape
+
+
+def stack_fragments(fragments) -> FragmentBatch:
+    """Stack fragments (anything with Fragment's attribute names: the wire's Trajectory too)."""
+    stacked = {name: np.stack([getattr(f, name) for f in fragments], axis=1)
+               for name in BATCH_STEP_FIELDS}
+    obs_dim = stacked["obs"].shape[-1]
+    trunc_t = [np.asarray(f.trunc_index, np.int32) for f in fragments]
+    return FragmentBatch(
+        **stacked,
+        trunc_t=np.concatenate(trunc_t) if trunc_t else np.zeros(0, np.int32),
+        trunc_b=np.concatenate([np.full(len(t), b, np.int32) for b, t in enumerate(trunc_t)])
+        if trunc_t else np.zeros(0, np.int32),
+        trunc_obs=np.concatenate([np.asarray(f.trunc_obs, np.float32).reshape(-1, obs_dim)
+                                  for f in fragments]),
+        policy_version=np.array([f.policy_version for f in fragments], np.int64))
 
 
 def fragment_return(rewards_scaled: np.ndarray, discounts: np.ndarray) -> np.ndarray:
@@ -92,18 +137,17 @@ def fragment_priority(
 
 @dataclass
 class Collector:
-    """Steps a vector env with an ActorCritic and emits fragments with initial priorities.
+    """Steps a vector env with a policy and emits fragments with initial priorities.
 
     `step()` advances every env once and returns the fragments completed by that step;
     finished episodes accumulate in `episodes` as (raw return, length) for the caller to drain.
-    Acting runs on a numpy copy of the model (`NumpyActor`): call `set_parameters` (or
-    `sync_model` after changing `model` yourself) so the copy follows the model.
+    The policy is a `NumpyPolicy` (numpy only); `set_policy` swaps in a newer one.
     All envs' steps are written into preallocated [num_envs, T] buffers with one numpy
     operation per field, so the per-step cost barely grows with the number of envs.
     """
 
     envs: object
-    model: ActorCritic
+    policy: NumpyPolicy
     fragment_len: int
     gamma: float
     action_low: np.ndarray
@@ -119,8 +163,7 @@ class Collector:
         obs, _ = self.envs.reset(seed=[self.seed + i for i in range(n)])
         self.obs = np.asarray(obs, dtype=np.float32)
         self.rng = np.random.default_rng(self.seed)
-        self.actor = NumpyActor(self.model)
-        T, obs_dim, act_dim = self.fragment_len, self.obs.shape[1], self.model.act_dim
+        T, obs_dim, act_dim = self.fragment_len, self.obs.shape[1], self.policy.act_dim
         self.buf = {
             "obs": np.zeros((n, T, obs_dim), np.float32),
             "actions": np.zeros((n, T, act_dim), np.float32),
@@ -143,16 +186,13 @@ class Collector:
         self.seq = 0
         self.env_steps = 0  # steps recorded into fragments (autoreset steps excluded)
 
-    def set_parameters(self, state_dict: dict, version: int) -> None:
-        self.model.load_state_dict(state_dict)
-        self.sync_model(version)
-
-    def sync_model(self, version: int) -> None:
-        self.actor.sync(self.model)
+    def set_policy(self, policy: NumpyPolicy, version: int) -> None:
+        """Act with `policy` (parameter version `version`) from the next step on."""
+        self.policy = policy
         self.policy_version = int(version)
 
     def step(self) -> list[Fragment]:
-        out = self.actor.act(self.obs, self.rng)
+        out = self.policy.act(self.obs, self.rng)
         env_action = np.clip(out["action"], self.action_low, self.action_high)
         next_obs, rewards, terminated, truncated, info = self.envs.step(env_action)
         next_obs = np.asarray(next_obs, dtype=np.float32)
@@ -195,8 +235,8 @@ class Collector:
         return fragments
 
     def _emit(self, env_indices: np.ndarray, next_obs: np.ndarray) -> list[Fragment]:
-        boot_values = self.actor.values_of(next_obs[env_indices])
-        scale = self.model.reward_scale()
+        boot_values = self.policy.values_of(next_obs[env_indices])
+        scale = self.policy.reward_scale()
         obs_dim = self.obs.shape[1]
         fragments = []
         for j, i in enumerate(env_indices.tolist()):
@@ -208,7 +248,7 @@ class Collector:
             values = np.append(b.pop("values"), np.float32(boot_values[j]))
             next_values = values[1:].astype(np.float64)
             if trunc:
-                next_values[trunc_index] = self.actor.values_of(trunc_obs)
+                next_values[trunc_index] = self.policy.values_of(trunc_obs)
             td = scale * b["rewards"] + self.gamma * (~b["terminated"]) * next_values \
                 - values[:-1]
             b["obs"] = np.concatenate([b["obs"], next_obs[i][None]])

@@ -14,48 +14,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from tpdeb_core.fragments import Fragment, fragment_priority
+from tpdeb_core.adam import Adam
+from tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
 from tpdeb_core.loss_config import LossConfig
-from tpdeb_core.model import ActorCritic, gaussian_entropy, gaussian_kl, gaussian_log_prob
-from tpdeb_core.vtrace import vtrace_terms
-
-
-@dataclass
-class Batch:
-    """Fragments stacked time-major: [T(+1), B, ...] tensors."""
-
-    obs: torch.Tensor
-    actions: torch.Tensor
-    rewards: torch.Tensor
-    terminated: torch.Tensor
-    truncated: torch.Tensor
-    behaviour_mean: torch.Tensor
-    behaviour_log_std: torch.Tensor
-    behaviour_logp: torch.Tensor
-    trunc_t: torch.Tensor  # [K] time index of each truncated step
-    trunc_b: torch.Tensor  # [K] batch index
-    trunc_obs: torch.Tensor  # [K, obs_dim]
-
-
-def collate(fragments: list[Fragment]) -> Batch:
-    def stack(name: str, dtype=torch.float32) -> torch.Tensor:
-        arr = np.stack([getattr(f, name) for f in fragments], axis=1)
-        return torch.as_tensor(arr).to(dtype)
-
-    trunc_b = np.concatenate([np.full(len(f.trunc_index), b) for b, f in enumerate(fragments)])
-    return Batch(
-        obs=stack("obs"),
-        actions=stack("actions"),
-        rewards=stack("rewards"),
-        terminated=stack("terminated"),
-        truncated=stack("truncated"),
-        behaviour_mean=stack("behaviour_mean"),
-        behaviour_log_std=stack("behaviour_log_std"),
-        behaviour_logp=stack("behaviour_logp"),
-        trunc_t=torch.as_tensor(np.concatenate([f.trunc_index for f in fragments])).long(),
-        trunc_b=torch.as_tensor(trunc_b).long(),
-        trunc_obs=torch.as_tensor(np.concatenate([f.trunc_obs for f in fragments])).float(),
-    )
+from tpdeb_core.model import ActorCritic
+from tpdeb_core.moments import variance
+from tpdeb_core.numpy_policy import LOG_2PI
+from tpdeb_core.vtrace import vtrace_arrays
 
 
 def impact_surrogate(
@@ -88,6 +53,82 @@ class StepResult:
     priorities: list = field(default_factory=list)  # float (trajectory) or array (step) each
 
 
+def gaussian_log_prob(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """log N(a; m, σ) summed over the last axis, σ = exp(log_std) state-independent [A]."""
+    z = (actions - mean) * np.exp(-log_std)
+    z *= z
+    return -0.5 * z.sum(-1) - (log_std.sum() + 0.5 * LOG_2PI * log_std.size)
+
+
+class LossTerms:
+    """The loss of one update and its gradient with respect to the networks' outputs.
+
+    With w the per-step weights (Σ w = 1), r = exp(log r) the surrogate's ratio, A the
+    advantages, d = a − m, σ⁻² = exp(−2 log σ):
+      pg = −Σ w·min(r·A, clip(r, 1−ε, 1+ε)·A) = −Σ w·A·clamp(r, lo, hi), where hi = 1+ε for
+           A > 0 (else ∞) and lo = 1−ε for A < 0 (else −∞): the same value and gradient;
+      value = ½ Σ w (V − v_s)²;  entropy = Σ_a log σ_a + A/2 (1 + log 2π);
+      KL(μ‖π) = Σ w ½ Σ_a [σ_μ²/σ² + (m_μ − m)²/σ² − 1 − 2 (log σ_μ − log σ)];
+      loss = pg + c_v·value − c_ent·entropy + λ_kl·KL.
+    ∂log r/∂m = d σ⁻², ∂log r/∂log σ = d² σ⁻² − 1 (per action dimension), ∂r/∂log r = r.
+    """
+
+    def __init__(self, cfg: LossConfig, kl_coef: float, f: FragmentBatch, w: np.ndarray,
+                 mean: np.ndarray, log_std: np.ndarray, values: np.ndarray, vs: np.ndarray,
+                 adv: np.ndarray, log_ratio: np.ndarray):
+        act_dim = log_std.size
+        inv_var = np.exp(-2.0 * log_std)
+        d = f.actions - mean
+        self.log_ratio = log_ratio
+        self.ratio = r = np.exp(log_ratio)
+        clip = cfg.clip_coef
+        positive = adv > 0
+        lo = np.where(positive, -np.inf, 1.0 - clip)
+        hi = np.where(positive, 1.0 + clip, np.inf)
+        weighted_adv = w * adv
+        self.pg_loss = -float((weighted_adv * np.clip(r, lo, hi)).sum())
+        # d pg / d log r: zero where the clamp holds r (torch.clamp's gradient passes at its
+        # bounds, as here)
+        g_logp = -weighted_adv * ((r >= lo) & (r <= hi)) * r  # [T, B]
+        v_error = values[:-1] - vs
+        self.value_loss = 0.5 * float((w * v_error * v_error).sum())
+        self.entropy = float(log_std.sum() + 0.5 * (1.0 + LOG_2PI) * act_dim)
+        w3 = w[..., None]
+        mu_gap = f.behaviour_mean - mean  # [T, B, A]
+        spread = (w3 * (np.exp(2.0 * f.behaviour_log_std) + mu_gap * mu_gap)).sum((0, 1))
+        mu_log_std = float((w3 * f.behaviour_log_std).sum())
+        self.kl = 0.5 * float((inv_var * spread).sum() - act_dim
+                              - 2.0 * (mu_log_std - log_std.sum()))
+        g_pg = g_logp[..., None] * d  # [T, B, A], times σ⁻² below
+        self.grad_mean = ((g_pg - kl_coef * w3 * mu_gap) * inv_var).astype(np.float32)
+        self.grad_log_std = ((g_pg * d).sum((0, 1)) * inv_var - g_logp.sum() - cfg.ent_coef
+                             + kl_coef * (1.0 - inv_var * spread)).astype(np.float32)
+        self.grad_values = np.zeros_like(values, dtype=np.float32)
+        self.grad_values[:-1] = cfg.vf_coef * w * v_error
+
+
+def sample_std(centred: np.ndarray) -> float:
+    """The unbiased standard deviation of already centred values (numpy's .std walks several
+    Python layers: a dot product is a tenth of the cost at this size)."""
+    flat = centred.ravel()
+    return math.sqrt(float(flat @ flat) / max(flat.size - 1, 1))
+
+
+def _layers(net: torch.nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    return [(m.weight, m.bias) for m in net if isinstance(m, torch.nn.Linear)]
+
+
+def _mlp(layers, x: torch.Tensor) -> torch.Tensor:
+    """The tanh MLP of `tpdeb_core.model.mlp` on its held weights: the same function without
+    nn.Module's call machinery (three calls per network per update add up at this size)."""
+    last = len(layers) - 1
+    for i, (weight, bias) in enumerate(layers):
+        x = torch.nn.functional.linear(x, weight, bias)
+        if i < last:
+            x = torch.tanh(x)
+    return x
+
+
 class Learner:
     """Owns the model, the target policy and the optimiser; `step` is one gradient update."""
 
@@ -95,8 +136,15 @@ class Learner:
         self.model = model
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(
-            model.parameters(), lr=config.learning_rate, eps=config.adam_eps)
+        # Held once: walking the module tree for them on every update costs more than the
+        # soft update itself.
+        self.params = list(model.parameters())
+        self.policy_params = list(model.policy.parameters())
+        self.target_params = list(self.target_policy.parameters())
+        self.mean_layers = _layers(model.policy.mean)
+        self.value_layers = _layers(model.value_net)
+        self.target_layers = _layers(self.target_policy.mean)
+        self.optimizer = Adam(self.params, lr=config.learning_rate, eps=config.adam_eps)
         self.kl_coef = config.kl_coef
         self.updates = 0
 
@@ -111,125 +159,144 @@ class Learner:
 
     def step(
         self,
-        fragments: list[Fragment],
+        fragments: FragmentBatch,
         keys: np.ndarray,
         weights: np.ndarray,
         from_prioritized: np.ndarray,
         step_weights: np.ndarray | None = None,
     ) -> StepResult:
-        """One update on `fragments` ([B] of them). `weights` [B] are the replay's importance
-        weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the weights
-        of the transitions drawn there, 0 where none was).
+        """One update on `fragments` (B of them, stacked). `weights` [B] are the replay's
+        importance weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the
+        weights of the transitions drawn there, 0 where none was).
 
         Every per-transition term of the loss (surrogate, value, entropy, KL) is the same
         weighted mean Σ w·ℓ / Σ w. Normalising by Σ w rather than by the count keeps the terms
         in proportion whatever the scale of the weights: step-level PER's weights
         (p / p_min)^(−β) can all sit far below 1, and a count-normalised surrogate and value
-        loss then vanish beside an unweighted entropy bonus."""
-        cfg, model = self.config, self.model
-        batch = collate(fragments)
-        T, B = batch.rewards.shape
+        loss then vanish beside an unweighted entropy bonus.
+
+        Only the networks run in torch. The loss is a function of their outputs — the policy
+        mean [T, B, A], the values [T+1, B] and the state-independent log-std [A] — whose
+        gradient with respect to those outputs has a closed form (`LossTerms`); it is computed
+        in numpy and handed to autograd for the networks' backward pass. At these sizes each
+        torch operation costs more in dispatch than in arithmetic, so the ~45 elementwise ops
+        of the loss and their backward nodes cost more than the few numpy expressions that
+        replace them. tests/test_learner.py holds it to the loss written plainly in torch."""
+        cfg, f = self.config, fragments
+        T, B = f.rewards.shape
         anchored = cfg.clip_anchor == "target"
 
-        obs = model.norm_obs(batch.obs)  # [T+1, B, obs_dim], current statistics
-        mean, log_std = model.policy(obs[:-1])
-        logp = gaussian_log_prob(mean, log_std, batch.actions)
-        values = model.value(obs)  # [T+1, B]
-        with torch.no_grad():
-            if anchored:
-                t_mean, t_log_std = self.target_policy(obs[:-1])
-                target_logp = gaussian_log_prob(t_mean, t_log_std, batch.actions)
-            else:  # PPO: V-trace toward the policy being trained
-                target_logp = logp.detach()
-            # Truncation: bootstrap from the real final observation through the reward and cut
-            # the trace there (discount 0), so nothing flows across the episode boundary.
-            scale = model.reward_scale()
-            rewards = batch.rewards * scale
-            continues = (1.0 - batch.terminated) * (1.0 - batch.truncated)
-            discounts = cfg.gamma * continues
-            if len(batch.trunc_t):
-                final_values = model.value(model.norm_obs(batch.trunc_obs))
-                not_term = 1.0 - batch.terminated[batch.trunc_t, batch.trunc_b]
-                rewards = rewards.index_put(
-                    (batch.trunc_t, batch.trunc_b), cfg.gamma * not_term * final_values,
-                    accumulate=True)
-            vt = vtrace_terms(
-                batch.behaviour_logp, target_logp, rewards, values[:-1].detach(),
-                values[-1].detach(), discounts, cfg.rho_bar, cfg.c_bar, cfg.rho_pg_bar,
-                cfg.vtrace_lambda)
-            adv = vt.pg_advantages
-            if cfg.norm_adv:
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-
-        # Per-element loss weights: PER importance weights per fragment, or per step (with the
-        # number of draws that hit it) in step mode. Copies: the inputs may be read-only.
+        # -- inputs (current normaliser statistics; rewards scaled at learn time)
+        obs_mean, obs_inv_std = self._obs_affine()
+        obs_np = (f.obs - obs_mean) * obs_inv_std
+        np.clip(obs_np, -self.model.obs_clip, self.model.obs_clip, out=obs_np)
+        obs = torch.from_numpy(obs_np)  # [T+1, B, obs_dim]
         if step_weights is not None:
-            w = torch.tensor(np.asarray(step_weights, np.float32)[:, :T].T)
+            w = np.asarray(step_weights, np.float32)[:, :T].T.copy()
         else:
-            w = torch.tensor(np.asarray(weights, np.float32)).expand(T, B)
-        w = w / w.sum().clamp_min(1e-12)
+            w = np.broadcast_to(np.asarray(weights, np.float32), (T, B)).copy()
+        w /= max(float(w.sum()), 1e-12)
 
-        surrogate, log_ratio = impact_surrogate(
-            logp, batch.behaviour_logp, target_logp if anchored else None, adv, cfg.clip_coef,
-            cfg.rho_target_bar)
-        ratio = torch.exp(log_ratio)
-        pg_loss = (surrogate * w).sum()
-        value_loss = 0.5 * ((values[:-1] - vt.vs).pow(2) * w).sum()
-        entropy = (gaussian_entropy(log_std) * w).sum()
-        kl = (gaussian_kl(batch.behaviour_mean, batch.behaviour_log_std, mean, log_std) * w).sum()
-        loss = pg_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy + self.kl_coef * kl
+        # -- the networks (the only part autograd sees)
+        mean_t = _mlp(self.mean_layers, obs[:-1])  # [T, B, A]
+        values_t = _mlp(self.value_layers, obs).squeeze(-1)  # [T+1, B]
+        with torch.no_grad():
+            mean, values = mean_t.detach().numpy(), values_t.detach().numpy()
+            log_std = self.model.policy.log_std.detach().numpy()
+            logp = gaussian_log_prob(mean, log_std, f.actions)
+            if anchored:
+                t_mean = _mlp(self.target_layers, obs[:-1]).numpy()
+                t_logp = gaussian_log_prob(t_mean, self.target_policy.log_std.numpy(),
+                                           f.actions)
+            else:  # PPO: V-trace toward the policy being trained
+                t_logp = logp
+            rewards = f.rewards * np.float32(self.model.reward_scale())
+            discounts = (cfg.gamma * ~(f.terminated | f.truncated)).astype(np.float32)
+            if len(f.trunc_t):
+                # Truncation: bootstrap from the real final observation through the reward and
+                # cut the trace there (discount 0), so nothing flows across the episode end.
+                final_obs = np.clip((f.trunc_obs - obs_mean) * obs_inv_std,
+                                    -self.model.obs_clip, self.model.obs_clip)
+                final_values = _mlp(self.value_layers, torch.from_numpy(final_obs))
+                not_term = ~f.terminated[f.trunc_t, f.trunc_b]
+                np.add.at(rewards, (f.trunc_t, f.trunc_b),
+                          cfg.gamma * not_term * final_values.squeeze(-1).numpy())
 
+        # -- V-trace targets and advantages
+        b_logp = np.asarray(f.behaviour_logp, np.float32)
+        vs, adv, rhos, deltas = vtrace_arrays(
+            b_logp, t_logp, rewards, values[:-1], values[-1], discounts, cfg.rho_bar, cfg.c_bar,
+            cfg.rho_pg_bar, cfg.vtrace_lambda)
+        if cfg.norm_adv:
+            adv = adv - adv.mean()
+            adv /= sample_std(adv) + 1e-8
+        # IMPACT: r = is · π_θ/μ with is = min(μ/π_θ̄, ρ̄_target), the clip centred on the target
+        # policy; PPO: r = π_θ/μ.
+        log_is = (np.minimum(b_logp - t_logp, math.log(cfg.rho_target_bar)) if anchored
+                  else 0.0)
+        terms = LossTerms(cfg, self.kl_coef, f, w, mean, log_std, values, vs, adv,
+                          logp - b_logp + log_is)
+
+        # -- backward through the networks, the optimiser, the target
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+        torch.autograd.backward((mean_t, values_t), (torch.from_numpy(terms.grad_mean),
+                                                     torch.from_numpy(terms.grad_values)))
+        self.model.policy.log_std.grad = torch.from_numpy(terms.grad_log_std)
+        grad_norm = float(self._clip_gradients(cfg.max_grad_norm))
         self.optimizer.step()
         if anchored:
             self._soft_update_target()
         self.updates += 1
         if cfg.kl_target > 0:
-            self._adapt_kl_coef(kl.item())
+            self._adapt_kl_coef(terms.kl)
 
-        with torch.no_grad():
-            approx_kl = ((ratio - 1.0) - log_ratio).mean().item()
-            clipfrac = ((ratio - 1.0).abs() > cfg.clip_coef).float().mean().item()
-            var_vs = vt.vs.var()
-            explained = (1.0 - (vt.vs - values[:-1]).var() / var_vs).item() if var_vs > 0 else 0.0
+        var_vs = sample_std(vs - vs.mean()) ** 2
+        residual = vs - values[:-1]
+        explained = (1.0 - sample_std(residual - residual.mean()) ** 2 / var_vs if var_vs > 0
+                     else 0.0)
         metrics = {
-            "losses/policy_loss": pg_loss.item(),
-            "losses/value_loss": value_loss.item(),
-            "losses/entropy": entropy.item(),
-            "losses/kl_behaviour": kl.item(),
+            "losses/policy_loss": terms.pg_loss, "losses/value_loss": terms.value_loss,
+            "losses/entropy": terms.entropy, "losses/kl_behaviour": terms.kl,
             "losses/kl_coef": self.kl_coef,
-            "losses/approx_kl": approx_kl,
-            "losses/clipfrac": clipfrac,
-            "losses/explained_variance": explained,
-            "losses/grad_norm": float(grad_norm),
-            "losses/target_is_clipfrac": (batch.behaviour_logp - target_logp
-                                          >= math.log(cfg.rho_target_bar)).float().mean().item()
-            if anchored else 0.0,
+            "losses/approx_kl": float(((terms.ratio - 1.0) - terms.log_ratio).mean()),
+            "losses/clipfrac": float((np.abs(terms.ratio - 1.0) > cfg.clip_coef).mean()),
+            "losses/explained_variance": explained, "losses/grad_norm": grad_norm,
+            "losses/target_is_clipfrac": float((b_logp - t_logp >= math.log(cfg.rho_target_bar))
+                                               .mean()) if anchored else 0.0,
         }
-        return StepResult(metrics, *self._new_priorities(vt, rewards, discounts, keys,
+        td_abs = np.abs(rhos * deltas)
+        return StepResult(metrics, *self._new_priorities(td_abs, rewards, discounts, keys,
                                                          from_prioritized))
 
-    def _new_priorities(self, vt, rewards, discounts, keys, from_prioritized):
+    def _obs_affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """The observation normaliser as float32 (mean, 1/std) (its current statistics)."""
+        rms = self.model.obs_rms
+        var = variance(float(rms.count), rms.m2.numpy())
+        return (rms.mean.numpy().astype(np.float32),
+                (1.0 / np.sqrt(var + rms.epsilon)).astype(np.float32))
+
+    def _new_priorities(self, td_abs, rewards, discounts, keys, from_prioritized):
         """Σ_t |ρ_t δ_t| (or per step) for the prioritized samples, on the current value net."""
-        td_abs = (vt.clipped_rhos * vt.deltas).abs().numpy()  # [T, B]
-        rewards_np, discounts_np = rewards.numpy(), discounts.numpy()
         idx = np.flatnonzero(from_prioritized)
         priorities = [
             fragment_priority(td_abs[:, b], self.config.priority_mode, self.config.priority_kappa,
-                              rewards_np[:, b], discounts_np[:, b])
+                              rewards[:, b], discounts[:, b])
             for b in idx
         ]
         return np.asarray(keys)[idx], priorities
 
     @torch.no_grad()
+    def _clip_gradients(self, max_norm: float) -> torch.Tensor:
+        """Scale the gradients to a global L2 norm of at most `max_norm` (as
+        torch.nn.utils.clip_grad_norm_, without its per-call checks); returns the norm before."""
+        grads = [p.grad for p in self.params]
+        total = torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads)))
+        torch._foreach_mul_(grads, (max_norm / (total + 1e-6)).clamp(max=1.0))
+        return total
+
+    @torch.no_grad()
     def _soft_update_target(self) -> None:
-        tau = self.config.tau
-        for target, source in zip(
-            self.target_policy.parameters(), self.model.policy.parameters(), strict=True
-        ):
-            target.lerp_(source, tau)
+        torch._foreach_lerp_(self.target_params, self.policy_params, self.config.tau)
 
     def _adapt_kl_coef(self, kl: float) -> None:
         if kl > 1.5 * self.config.kl_target:

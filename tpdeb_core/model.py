@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
-LOG_2PI = math.log(2.0 * math.pi)
-
+from tpdeb_core.moments import NORM_EPSILON, batch_moments, merge_moments, variance
+from tpdeb_core.numpy_policy import LOG_2PI, NumpyPolicy
 
 # --- diagonal Gaussian ---------------------------------------------------------------------------
 
@@ -45,28 +45,6 @@ def gaussian_kl(
 # --- running moments -----------------------------------------------------------------------------
 
 
-def batch_moments(x: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """(count, mean, M2) of a batch along axis 0, the unit that normalisers merge."""
-    x = np.asarray(x, dtype=np.float64)
-    x = x.reshape(x.shape[0], -1) if x.ndim > 1 else x.reshape(-1, 1)
-    mean = x.mean(axis=0)
-    m2 = ((x - mean) ** 2).sum(axis=0)
-    return float(x.shape[0]), mean, m2
-
-
-def merge_moments(a: tuple, b: tuple) -> tuple[float, np.ndarray, np.ndarray]:
-    """Chan et al.'s parallel combination of two (count, mean, M2) triples."""
-    n_a, mean_a, m2_a = a
-    n_b, mean_b, m2_b = b
-    if n_b <= 0:
-        return float(n_a), np.asarray(mean_a, np.float64), np.asarray(m2_a, np.float64)
-    n = n_a + n_b
-    delta = np.asarray(mean_b, np.float64) - mean_a
-    mean = mean_a + delta * (n_b / n)
-    m2 = m2_a + np.asarray(m2_b, np.float64) + delta**2 * (n_a * n_b / n)
-    return float(n), mean, m2
-
-
 class RunningMeanStd(nn.Module):
     """Running mean/variance, merged with Chan et al.'s parallel update.
 
@@ -74,7 +52,7 @@ class RunningMeanStd(nn.Module):
     merged state with the parameters. Stored in float64 buffers so long runs do not drift.
     """
 
-    def __init__(self, shape: Sequence[int] | int = (), epsilon: float = 1e-8):
+    def __init__(self, shape: Sequence[int] | int = (), epsilon: float = NORM_EPSILON):
         super().__init__()
         shape = (shape,) if isinstance(shape, int) else tuple(shape)
         self.epsilon = epsilon
@@ -167,7 +145,8 @@ class ActorCritic(nn.Module):
 
     def reward_scale(self) -> float:
         """Multiplier for raw rewards: 1 / std of the discounted return."""
-        return float(1.0 / math.sqrt(self.ret_rms.var.item() + 1e-8))
+        rms = self.ret_rms  # in numpy: the torch ops of `var` cost ~20 µs per update
+        return 1.0 / math.sqrt(float(variance(float(rms.count), rms.m2.numpy())) + 1e-8)
 
     def value(self, obs_norm: torch.Tensor) -> torch.Tensor:
         return self.value_net(obs_norm).squeeze(-1)
@@ -196,55 +175,10 @@ class ActorCritic(nn.Module):
     def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
         return self.value(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))).numpy()
 
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The state (parameters and normalisers) as numpy arrays, by state_dict name."""
+        return {k: v.detach().cpu().numpy() for k, v in self.state_dict().items()}
 
-class NumpyActor:
-    """The acting path of an ActorCritic in numpy: the same outputs as `act`/`values_of`
-    without a torch call per env step (for small batches, torch's per-call overhead costs more
-    than the arithmetic). Call `sync(model)` after the model's parameters change."""
-
-    def __init__(self, model: ActorCritic):
-        self.sync(model)
-
-    @staticmethod
-    def _layers(net: nn.Sequential) -> list[tuple[np.ndarray, np.ndarray]]:
-        return [(m.weight.detach().numpy().T.astype(np.float32).copy(),
-                 m.bias.detach().numpy().astype(np.float32).copy())
-                for m in net if isinstance(m, nn.Linear)]
-
-    def sync(self, model: ActorCritic) -> None:
-        self.mean_layers = self._layers(model.policy.mean)
-        self.value_layers = self._layers(model.value_net)
-        self.log_std = model.policy.log_std.detach().numpy().astype(np.float32).copy()
-        self.obs_mean = model.obs_rms.mean.numpy().astype(np.float32)
-        self.obs_inv_std = (1.0 / np.sqrt(model.obs_rms.var.numpy() + model.obs_rms.epsilon)
-                            ).astype(np.float32)
-        self.obs_clip = model.obs_clip
-        self.log_norm = float(-self.log_std.sum() - 0.5 * LOG_2PI * self.log_std.size)
-
-    @staticmethod
-    def _forward(layers, x: np.ndarray) -> np.ndarray:
-        for i, (weight, bias) in enumerate(layers):
-            x = x @ weight + bias
-            if i < len(layers) - 1:
-                np.tanh(x, out=x)
-        return x
-
-    def _norm(self, obs_raw: np.ndarray) -> np.ndarray:
-        x = (np.asarray(obs_raw, np.float32) - self.obs_mean) * self.obs_inv_std
-        return np.clip(x, -self.obs_clip, self.obs_clip) if self.obs_clip is not None else x
-
-    def act(self, obs_raw: np.ndarray, rng: np.random.Generator) -> dict:
-        obs = self._norm(obs_raw)
-        mean = self._forward(self.mean_layers, obs)
-        noise = rng.standard_normal(mean.shape, dtype=np.float32)
-        log_std = np.broadcast_to(self.log_std, mean.shape)
-        return {
-            "action": mean + noise * np.exp(log_std),
-            "mean": mean,
-            "log_std": log_std,
-            "logp": (-0.5 * np.square(noise).sum(-1) + self.log_norm).astype(np.float32),
-            "value": self._forward(self.value_layers, obs)[:, 0],
-        }
-
-    def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
-        return self._forward(self.value_layers, self._norm(obs_raw))[:, 0]
+    def numpy_policy(self) -> NumpyPolicy:
+        """A torch-free copy of the acting path; it does not follow later changes."""
+        return NumpyPolicy(self.arrays(), self.obs_clip)

@@ -1,0 +1,26 @@
+"""Environment construction: MuJoCo's harmless deprecation notice never reaches the user."""
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+from services.envs import mujoco_warning
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_mujoco_deprecation_notice_is_silenced_at_its_source():
+    code = ("from services.envs import make_vector_env; "
+            "make_vector_env('HalfCheetah-v5', 2).close(); print('built')")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         check=True)
+    assert out.stdout.strip() == "built"
+    assert "settotalmass" not in out.stderr and "WARNING" not in out.stderr, out.stderr
+
+
+def test_other_mujoco_warnings_are_still_shown():
+    shown = io.StringIO()
+    mujoco_warning("compiler attribute 'settotalmass' is deprecated and will be removed", shown)
+    mujoco_warning("Nan, Inf or huge value in QACC at DOF 0", shown)
+    assert shown.getvalue() == "WARNING: Nan, Inf or huge value in QACC at DOF 0\n"
