@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import signal
 import time
+import types
 
 import numpy as np
 import pytest
@@ -33,6 +34,8 @@ ENV = "InvertedPendulum-v5"
 class _Entity:
     def __init__(self, log: list | None = None):
         self.log = log
+        # a publisher whose puts the test records has a listener, as Zenoh would report it
+        self.matching_status = types.SimpleNamespace(matching=log is not None)
 
     def put(self, data) -> None:
         if self.log is not None:
