@@ -203,7 +203,10 @@ class LearnerService:
             waiting, self.waiting_queries = self.waiting_queries, []
         for query in waiting:
             self._reply(query, data)
-        if self.params_publisher.matching_status.matching:  # nobody listens: no copy to send
+        # Nobody subscribed (the usual case: actors pull): no copy to send. Zenoh builds
+        # without matching status put anyway.
+        matching = getattr(self.params_publisher, "matching_status", None)
+        if matching is None or matching.matching:
             self.params_publisher.put(data)
 
     def _answer_latest(self, query) -> None:
