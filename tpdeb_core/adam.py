@@ -48,11 +48,17 @@ class Adam:
         self.param_groups = [{"lr": lr, "betas": tuple(betas), "eps": eps}]
         self.exp_avg = [torch.zeros_like(p) for p in self.params]
         self.exp_avg_sq = [torch.zeros_like(p) for p in self.params]
-        self.step_counts = [torch.zeros((), dtype=torch.float32) for _ in self.params]
+        self._share_step(0.0)
+
+    def _share_step(self, value: float) -> None:
+        # One step count for all parameters (the kernels take a list, one entry per parameter):
+        # advancing it is one operation instead of one per tensor.
+        self.step_count = torch.tensor(float(value))
+        self.step_counts = [self.step_count] * len(self.params)
 
     @property
     def steps(self) -> int:
-        return int(self.step_counts[0].item())
+        return int(self.step_count.item())
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         for p in self.params:
@@ -68,7 +74,7 @@ class Adam:
             raise ValueError("Adam.step: every parameter needs a gradient")
         group = self.param_groups[0]
         lr, (beta1, beta2), eps = group["lr"], group["betas"], group["eps"]
-        torch._foreach_add_(self.step_counts, 1.0)
+        self.step_count.add_(1.0)
         if self.fused:
             torch._fused_adam_(self.params, grads, self.exp_avg, self.exp_avg_sq, [],
                                self.step_counts, lr=lr, beta1=beta1, beta2=beta2,
@@ -87,7 +93,7 @@ class Adam:
     # -- torch.optim.Adam's state-dict layout
     def state_dict(self) -> dict:
         group = self.param_groups[0]
-        state = {i: {"step": self.step_counts[i].clone(), "exp_avg": self.exp_avg[i],
+        state = {i: {"step": self.step_count.clone(), "exp_avg": self.exp_avg[i],
                      "exp_avg_sq": self.exp_avg_sq[i]} for i in range(len(self.params))}
         return {"state": state if self.steps else {},
                 "param_groups": [{"lr": group["lr"], "betas": group["betas"],
@@ -119,9 +125,9 @@ class Adam:
                                      f"{tuple(p.shape)}")
         self.param_groups[0].update(lr=float(group["lr"]), betas=tuple(group["betas"]),
                                     eps=float(group["eps"]))
+        self._share_step(steps.pop() if steps else 0.0)
         for i, p in enumerate(self.params):
             entry = state.get(int(group["params"][i]))
-            self.step_counts[i] = torch.tensor(float(entry["step"]) if entry is not None else 0.0)
             for name, held in (("exp_avg", self.exp_avg), ("exp_avg_sq", self.exp_avg_sq)):
                 held[i] = (entry[name].detach().clone().to(p.dtype) if entry is not None
                            else torch.zeros_like(p))

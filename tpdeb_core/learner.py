@@ -107,6 +107,11 @@ class LossTerms:
         self.grad_values[:-1] = cfg.vf_coef * w * v_error
 
 
+def mean_of(x: np.ndarray) -> float:
+    """The mean of all elements (np.mean's Python layers cost ~15 µs a call at this size)."""
+    return float(np.add.reduce(x, axis=None)) / x.size
+
+
 def sample_std(centred: np.ndarray) -> float:
     """The unbiased standard deviation of already centred values (numpy's .std walks several
     Python layers: a dot product is a tenth of the cost at this size)."""
@@ -228,7 +233,7 @@ class Learner:
             b_logp, t_logp, rewards, values[:-1], values[-1], discounts, cfg.rho_bar, cfg.c_bar,
             cfg.rho_pg_bar, cfg.vtrace_lambda)
         if cfg.norm_adv:
-            adv = adv - adv.mean()
+            adv = adv - mean_of(adv)
             adv /= sample_std(adv) + 1e-8
         # IMPACT: r = is · π_θ/μ with is = min(μ/π_θ̄, ρ̄_target), the clip centred on the target
         # policy; PPO: r = π_θ/μ.
@@ -250,19 +255,19 @@ class Learner:
         if cfg.kl_target > 0:
             self._adapt_kl_coef(terms.kl)
 
-        var_vs = sample_std(vs - vs.mean()) ** 2
+        var_vs = sample_std(vs - mean_of(vs)) ** 2
         residual = vs - values[:-1]
-        explained = (1.0 - sample_std(residual - residual.mean()) ** 2 / var_vs if var_vs > 0
+        explained = (1.0 - sample_std(residual - mean_of(residual)) ** 2 / var_vs if var_vs > 0
                      else 0.0)
         metrics = {
             "losses/policy_loss": terms.pg_loss, "losses/value_loss": terms.value_loss,
             "losses/entropy": terms.entropy, "losses/kl_behaviour": terms.kl,
             "losses/kl_coef": self.kl_coef,
-            "losses/approx_kl": float(((terms.ratio - 1.0) - terms.log_ratio).mean()),
-            "losses/clipfrac": float((np.abs(terms.ratio - 1.0) > cfg.clip_coef).mean()),
+            "losses/approx_kl": mean_of((terms.ratio - 1.0) - terms.log_ratio),
+            "losses/clipfrac": mean_of(np.abs(terms.ratio - 1.0) > cfg.clip_coef),
             "losses/explained_variance": explained, "losses/grad_norm": grad_norm,
-            "losses/target_is_clipfrac": float((b_logp - t_logp >= math.log(cfg.rho_target_bar))
-                                               .mean()) if anchored else 0.0,
+            "losses/target_is_clipfrac": mean_of(b_logp - t_logp >= math.log(cfg.rho_target_bar))
+            if anchored else 0.0,
         }
         td_abs = np.abs(rhos * deltas)
         return StepResult(metrics, *self._new_priorities(td_abs, rewards, discounts, keys,
