@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import math
 import os
@@ -99,8 +100,8 @@ def bench_env(env_id: str, num_envs: int, seconds: float, seed: int) -> dict:
         envs.reset(seed=[seed + i for i in range(num_envs)])
         envs.action_space.seed(seed)
         actions = [envs.action_space.sample() for _ in range(1024)]
-        counter = iter(range(10**12))
-        calls, elapsed = timed_loop(lambda: envs.step(actions[next(counter) % 1024]), seconds)
+        cycle = itertools.cycle(actions)
+        calls, elapsed = timed_loop(lambda: envs.step(next(cycle)), seconds)
     finally:
         envs.close()
     return {"env_steps_per_s": calls * num_envs / elapsed, "seconds": elapsed}
@@ -153,12 +154,11 @@ def bench_actor(config: TrainConfig, seconds: float) -> dict:
                 sent["bytes"] += len(encode(fragment_to_message(fragment, 1.0)))
                 sent["fragments"] += 1
 
-        steps0 = collector.env_steps
-        timed_loop(step, 0.5)
+        timed_loop(step, 0.5)  # warm-up
         steps0 = collector.env_steps
         _, elapsed = timed_loop(step, seconds, warmup=0)
         steps = collector.env_steps - steps0
-        payload = encode(params_message(model, 1))
+        payload = encode(params_message(model.arrays(), 1))
         loads, load_s = timed_loop(lambda: policy_from_params(decode(payload, Params), spec),
                                    min(2.0, seconds / 2))
     finally:
@@ -197,10 +197,10 @@ def bench_floor(config: TrainConfig, spec, batches, seconds: float) -> dict:
     model = model_for(spec)
     optimizer = Learner(model, config.loss_config()).optimizer  # the learner's own settings
     obs = [torch.tensor(b.obs) for b in batches]
-    counter = iter(range(10**12))
+    cycle = itertools.cycle(obs)
 
     def step():
-        x = obs[next(counter) % len(obs)]
+        x = next(cycle)
         mean, log_std = model.policy(x[:-1])
         loss = mean.square().mean() + log_std.sum() + model.value(x).square().mean()
         optimizer.zero_grad(set_to_none=True)
@@ -222,9 +222,9 @@ def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float)
     b = config.batch_fragments
     keys, weights = np.arange(b, dtype=np.int64), np.ones(b, np.float32)
     from_prioritized = np.arange(b) < int(round(config.zeta * b))
-    counter = iter(range(10**12))
-    calls, elapsed = timed_loop(lambda: learner.step(
-        batches[next(counter) % len(batches)], keys, weights, from_prioritized), seconds)
+    cycle = itertools.cycle(batches)
+    calls, elapsed = timed_loop(lambda: learner.step(next(cycle), keys, weights,
+                                                     from_prioritized), seconds)
     return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed,
             "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
             "torch_threads": config.torch_threads}

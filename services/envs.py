@@ -11,8 +11,8 @@ from gymnasium.vector import AutoresetMode
 
 from services.config import ConfigError
 
-# MuJoCo warnings that say nothing to a user: HalfCheetah's, Hopper's, Walker2d's… XML still
-# uses `settotalmass`, deprecated since MuJoCo 3.3 and harmless, printed once per env built.
+# MuJoCo warnings that say nothing to a user: gymnasium's MuJoCo XML (HalfCheetah's among
+# others) still uses the deprecated, harmless `settotalmass`, printed once per env built.
 HARMLESS_MUJOCO_WARNINGS = ("compiler attribute 'settotalmass' is deprecated",)
 
 

@@ -72,6 +72,7 @@ from services.zsession import (
     say,
 )
 from tpdeb_core.learner import Learner
+from tpdeb_core.model import state_arrays
 
 PROG = "tpdeb-learner"
 LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")
@@ -197,7 +198,8 @@ class LearnerService:
         `params` key for any monitor)."""
         version = self.param_version()
         self.versions.reserve(version)  # on disk before any actor can hold this version
-        data = encode(params_message(self.state, version, self.config.params_dtype))
+        data = encode(params_message(state_arrays(self.state), version,
+                                     self.config.params_dtype))
         with self.params_lock:
             self.params_bytes, self.params_version = data, version
             waiting, self.waiting_queries = self.waiting_queries, []

@@ -1,7 +1,7 @@
 """Between the core's objects and the wire's messages: fragments, parameters, the run spec.
 
 Torch-free: actors and the replay server import it. The torch model's side of the parameter
-message (build one from a model, load one into it) is in services/model_wire.py.
+message (the model for a spec, a message of its state) is in services/model_wire.py.
 """
 
 from __future__ import annotations
@@ -41,22 +41,27 @@ def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int) -> s
     return None
 
 
+def _fields(source, names: list[str]) -> dict:
+    """The core object's fields and the message's carry the same names: copy them across."""
+    return {name: getattr(source, name) for name in names}
+
+
 def fragment_to_message(fragment: Fragment, reward_scale: float,
                         incarnation: int = 0) -> Trajectory:
     return Trajectory(reward_scale=float(reward_scale), incarnation=int(incarnation),
-                      **{name: getattr(fragment, name) for name in _FRAGMENT_FIELDS})
+                      **_fields(fragment, _FRAGMENT_FIELDS))
 
 
 def message_to_fragment(message: Trajectory) -> Fragment:
-    return Fragment(**{name: getattr(message, name) for name in _FRAGMENT_FIELDS})
+    return Fragment(**_fields(message, _FRAGMENT_FIELDS))
 
 
 def batch_message(batch: FragmentBatch) -> Batch:
-    return Batch(**{name: getattr(batch, name) for name in _BATCH_FIELDS})
+    return Batch(**_fields(batch, _BATCH_FIELDS))
 
 
 def batch_of(message: Batch) -> FragmentBatch:
-    return FragmentBatch(**{name: getattr(message, name) for name in _BATCH_FIELDS})
+    return FragmentBatch(**_fields(message, _BATCH_FIELDS))
 
 
 def expected_shapes(spec: RunSpec) -> dict[str, tuple[int, ...]]:

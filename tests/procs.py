@@ -106,3 +106,9 @@ def pids_with(text: str) -> list[int]:
 def maps_torch(pid: int) -> bool:
     """Whether the process has torch's shared library mapped (it imported torch, even lazily)."""
     return "libtorch" in (Path("/proc") / str(pid) / "maps").read_text()
+
+
+def python_c(code: str) -> subprocess.CompletedProcess:
+    """`python -c code` in the repository root, its output captured; fails on a non-zero exit."""
+    return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          check=True)

@@ -1,20 +1,15 @@
 """Environment construction: MuJoCo's harmless deprecation notice never reaches the user."""
 
 import io
-import subprocess
-import sys
-from pathlib import Path
 
 from services.envs import mujoco_warning
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.procs import python_c
 
 
 def test_mujoco_deprecation_notice_is_silenced_at_its_source():
     code = ("from services.envs import make_vector_env; "
             "make_vector_env('HalfCheetah-v5', 2).close(); print('built')")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         check=True)
+    out = python_c(code)
     assert out.stdout.strip() == "built"
     assert "settotalmass" not in out.stderr and "WARNING" not in out.stderr, out.stderr
 

@@ -1,9 +1,9 @@
 """SPEC §1: imports go one way, and the algorithm layer does no I/O."""
 
 import ast
-import subprocess
-import sys
 from pathlib import Path
+
+from tests.procs import python_c
 
 try:
     import tomllib
@@ -72,9 +72,7 @@ def test_only_the_training_and_evaluating_entry_points_import_torch():
     modules = entry_points()
     found = {}
     for name, module in modules.items():
-        out = subprocess.run([sys.executable, "-c", f"import {module}, sys; "
-                              "print('torch' in sys.modules)"], cwd=ROOT, capture_output=True,
-                             text=True, check=True)
+        out = python_c(f"import {module}, sys; print('torch' in sys.modules)")
         found[name] = out.stdout.strip() == "True"
     light = sorted(name for name, has in found.items() if has and name not in TORCH_ENTRY_POINTS)
     assert not light, f"these entry points import torch: {light}"
@@ -84,6 +82,4 @@ def test_only_the_training_and_evaluating_entry_points_import_torch():
 def test_router_config_validates_without_torch():
     code = ("import sys, services.router; services.router.RouterConfig(); "
             "print('torch' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
-                         check=True)
-    assert out.stdout.strip() == "False"
+    assert python_c(code).stdout.strip() == "False"

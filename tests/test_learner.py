@@ -8,9 +8,22 @@ from torch.distributions import Independent, Normal, kl_divergence
 
 from tests.fakes import ScriptedVectorEnv
 from tpdeb_core.fragments import Collector, stack_fragments
-from tpdeb_core.learner import Learner, LossConfig, impact_surrogate
+from tpdeb_core.learner import Learner, LossConfig
 from tpdeb_core.model import ActorCritic
 from tpdeb_core.vtrace import vtrace_terms
+
+
+def impact_surrogate(logp, behaviour_logp, target_logp, advantages, clip_coef, rho_target_bar):
+    """The IMPACT surrogate written plainly in torch, the reference for `LossTerms`: per step
+    −min(r·A, clip(r, 1−ε, 1+ε)·A) with r = is · π_θ/μ, is = min(μ/π_θ̄, ρ̄_target) (the clip
+    centred on the target policy), and log r."""
+    log_ratio = logp - behaviour_logp
+    if target_logp is not None:
+        log_is = torch.clamp(behaviour_logp - target_logp, max=math.log(rho_target_bar))
+        log_ratio = log_ratio + log_is.detach()
+    ratio = torch.exp(log_ratio)
+    clipped = ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef)
+    return -torch.min(ratio * advantages, clipped * advantages), log_ratio
 
 
 def fragments_and_model(n=6, seed=0):

@@ -1,15 +1,16 @@
 """Core objects on the wire: fragments and parameters survive the trip, float16 halves the
-parameters and loads back within float16's precision."""
+parameters and an actor acts on them within float16's precision."""
 
 import numpy as np
 import torch
 
 from protocol import Params, Trajectory, decode, encode
-from services.model_wire import load_params, params_message
-from services.wire import fragment_to_message, message_to_fragment
+from services.model_wire import params_message
+from services.wire import check_params, fragment_to_message, message_to_fragment
 from tests.fakes import ScriptedVectorEnv
 from tpdeb_core.fragments import Collector
 from tpdeb_core.model import ActorCritic
+from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 
 def test_fragment_round_trip_through_the_codec_compressed_or_not():
@@ -33,23 +34,26 @@ def test_float16_parameters_are_half_the_bytes_and_load_back_closely():
     torch.manual_seed(0)
     model = ActorCritic(17, 6)
     model.obs_rms.update(np.random.default_rng(0).normal(size=(50, 17)))
-    full = encode(params_message(model, 3))
-    half = encode(params_message(model, 3, "float16"))
+    full = encode(params_message(model.arrays(), 3))
+    half = encode(params_message(model.arrays(), 3, "float16"))
     assert len(half) < 0.6 * len(full)
-    received = ActorCritic(17, 6)
-    load_params(received, decode(half, Params))
+    received = decode(half, Params)
+    check_params(received, param_shapes(17, 6, (64, 64)))  # an actor accepts it
     for name, value in model.state_dict().items():
-        got = received.state_dict()[name]
-        assert got.dtype == value.dtype, name
-        torch.testing.assert_close(got, value, rtol=1e-3, atol=1e-3)
+        got = received.arrays[name]
+        assert got.dtype == (np.float16 if value.dtype == torch.float32 else np.float64), name
+        np.testing.assert_allclose(got.astype(np.float64), value.numpy(), rtol=1e-3, atol=1e-3)
     # normaliser statistics travel exactly (float64)
-    assert torch.equal(received.obs_rms.mean, model.obs_rms.mean)
+    np.testing.assert_array_equal(received.arrays["obs_rms.mean"], model.obs_rms.mean.numpy())
+    obs = np.random.default_rng(1).normal(size=(5, 17)).astype(np.float32)
+    np.testing.assert_allclose(NumpyPolicy(received.arrays, model.obs_clip).values_of(obs),
+                               model.values_of(obs), rtol=1e-2, atol=1e-2)
 
 
 def test_weights_beyond_float16_range_stay_float32():
     model = ActorCritic(3, 1)
     with torch.no_grad():
         model.value_net[0].weight[0, 0] = 1e6
-    arrays = params_message(model, 1, "float16").arrays
+    arrays = params_message(model.arrays(), 1, "float16").arrays
     assert arrays["value_net.0.weight"].dtype == np.float32
     assert arrays["value_net.2.weight"].dtype == np.float16

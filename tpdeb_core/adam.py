@@ -3,8 +3,9 @@ for every parameter), its `_foreach` kernels otherwise.
 
 `torch.optim.Adam` computes the same update, but its first `step()` imports TorchDynamo (and
 sympy with it: about 85 MiB of resident memory in a learner that is otherwise ~300 MiB) and
-each step walks several layers of hooks and dispatch: ~110 µs per step for the 64×64 networks
-against ~11 µs here. The state dict has torch.optim.Adam's layout, so checkpoints load either
+each step walks several layers of hooks and dispatch: for the 64×64 networks a step takes
+~260 µs (~180 µs with foreach=True) against ~17 µs on the fused kernel here (~100 µs on this
+module's foreach path). The state dict has torch.optim.Adam's layout, so checkpoints load either
 way.
 """
 

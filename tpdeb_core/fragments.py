@@ -76,11 +76,6 @@ class FragmentBatch:
     trunc_obs: np.ndarray  # float32 [K, obs_dim], its real final observation
     policy_version: np.ndarray  # int64 [B], the behaviour policy of each fragment
 
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(T, B)."""
-        return self.rewards.shape
-
 
 def stack_fragments(fragments) -> FragmentBatch:
     """Stack fragments (anything with Fragment's attribute names: the wire's Trajectory too)."""

@@ -18,32 +18,9 @@ from tpdeb_core.adam import Adam
 from tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
 from tpdeb_core.loss_config import LossConfig
 from tpdeb_core.model import ActorCritic
-from tpdeb_core.moments import variance
+from tpdeb_core.moments import inverse_std
 from tpdeb_core.numpy_policy import LOG_2PI
 from tpdeb_core.vtrace import vtrace_arrays
-
-
-def impact_surrogate(
-    logp: torch.Tensor,
-    behaviour_logp: torch.Tensor,
-    target_logp: torch.Tensor | None,
-    advantages: torch.Tensor,
-    clip_coef: float,
-    rho_target_bar: float,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-step IMPACT loss −min(r·A, clip(r, 1−ε, 1+ε)·A) (SPEC §2 step 2) and log r.
-
-    r_t = is_t · π_θ/μ with is_t = min(μ/π_θ̄, ρ̄_target): the clip is centred on the target
-    policy, so the policy moves at most ε away from π_θ̄ per sample however stale μ is.
-    Without a target policy (`target_logp` None) it is PPO's clipped surrogate, r_t = π_θ/μ.
-    """
-    log_ratio = logp - behaviour_logp
-    if target_logp is not None:
-        log_is = torch.clamp(behaviour_logp - target_logp, max=math.log(rho_target_bar))
-        log_ratio = log_ratio + log_is.detach()
-    ratio = torch.exp(log_ratio)
-    clipped = ratio.clamp(1.0 - clip_coef, 1.0 + clip_coef)
-    return -torch.min(ratio * advantages, clipped * advantages), log_ratio
 
 
 @dataclass
@@ -53,8 +30,9 @@ class StepResult:
     priorities: list = field(default_factory=list)  # float (trajectory) or array (step) each
 
 
-def gaussian_log_prob(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """log N(a; m, σ) summed over the last axis, σ = exp(log_std) state-independent [A]."""
+def log_prob(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """log N(a; m, σ) in numpy, summed over the last axis; σ = exp(log_std) is state-independent
+    [A]."""
     z = (actions - mean) * np.exp(-log_std)
     z *= z
     return -0.5 * z.sum(-1) - (log_std.sum() + 0.5 * LOG_2PI * log_std.size)
@@ -108,13 +86,14 @@ class LossTerms:
 
 
 def mean_of(x: np.ndarray) -> float:
-    """The mean of all elements (np.mean's Python layers cost ~15 µs a call at this size)."""
+    """The mean of all elements (np.mean's Python layers cost ~15 µs a call, measured in a
+    profile of Learner.step; a reduction alone a few)."""
     return float(np.add.reduce(x, axis=None)) / x.size
 
 
 def sample_std(centred: np.ndarray) -> float:
-    """The unbiased standard deviation of already centred values (numpy's .std walks several
-    Python layers: a dot product is a tenth of the cost at this size)."""
+    """The unbiased standard deviation of already centred values (for a [64, 8] batch: a dot
+    product, 0.6 µs, where np.std takes 7.5 µs)."""
     flat = centred.ravel()
     return math.sqrt(float(flat @ flat) / max(flat.size - 1, 1))
 
@@ -208,11 +187,10 @@ class Learner:
         with torch.no_grad():
             mean, values = mean_t.detach().numpy(), values_t.detach().numpy()
             log_std = self.model.policy.log_std.detach().numpy()
-            logp = gaussian_log_prob(mean, log_std, f.actions)
+            logp = log_prob(mean, log_std, f.actions)
             if anchored:
                 t_mean = _mlp(self.target_layers, obs[:-1]).numpy()
-                t_logp = gaussian_log_prob(t_mean, self.target_policy.log_std.numpy(),
-                                           f.actions)
+                t_logp = log_prob(t_mean, self.target_policy.log_std.numpy(), f.actions)
             else:  # PPO: V-trace toward the policy being trained
                 t_logp = logp
             rewards = f.rewards * np.float32(self.model.reward_scale())
@@ -276,9 +254,8 @@ class Learner:
     def _obs_affine(self) -> tuple[np.ndarray, np.ndarray]:
         """The observation normaliser as float32 (mean, 1/std) (its current statistics)."""
         rms = self.model.obs_rms
-        var = variance(float(rms.count), rms.m2.numpy())
         return (rms.mean.numpy().astype(np.float32),
-                (1.0 / np.sqrt(var + rms.epsilon)).astype(np.float32))
+                inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon).astype(np.float32))
 
     def _new_priorities(self, td_abs, rewards, discounts, keys, from_prioritized):
         """Σ_t |ρ_t δ_t| (or per step) for the prioritized samples, on the current value net."""

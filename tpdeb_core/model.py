@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from tpdeb_core.moments import NORM_EPSILON, batch_moments, merge_moments, variance
+from tpdeb_core.moments import NORM_EPSILON, batch_moments, inverse_std, merge_moments
 from tpdeb_core.numpy_policy import LOG_2PI, NumpyPolicy
 
 # --- diagonal Gaussian ---------------------------------------------------------------------------
@@ -28,18 +28,9 @@ def gaussian_log_prob(
     return (-0.5 * z.pow(2) - log_std - 0.5 * LOG_2PI).sum(-1)
 
 
-def gaussian_entropy(log_std: torch.Tensor) -> torch.Tensor:
-    """Entropy of a diagonal Gaussian, summed over the last dimension."""
-    return (log_std + 0.5 * (1.0 + LOG_2PI)).sum(-1)
-
-
-def gaussian_kl(
-    mean_p: torch.Tensor, log_std_p: torch.Tensor, mean_q: torch.Tensor, log_std_q: torch.Tensor
-) -> torch.Tensor:
-    """Analytic KL(p ‖ q) between diagonal Gaussians, summed over the last dimension."""
-    var_ratio = torch.exp(2.0 * (log_std_p - log_std_q))
-    mean_term = ((mean_p - mean_q) * torch.exp(-log_std_q)).pow(2)
-    return 0.5 * (var_ratio + mean_term - 1.0 - 2.0 * (log_std_p - log_std_q)).sum(-1)
+def state_arrays(state: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
+    """A state dict as numpy arrays (views of the tensors: copy before they change)."""
+    return {k: v.detach().cpu().numpy() for k, v in state.items()}
 
 
 # --- running moments -----------------------------------------------------------------------------
@@ -145,8 +136,8 @@ class ActorCritic(nn.Module):
 
     def reward_scale(self) -> float:
         """Multiplier for raw rewards: 1 / std of the discounted return."""
-        rms = self.ret_rms  # in numpy: the torch ops of `var` cost ~20 µs per update
-        return 1.0 / math.sqrt(float(variance(float(rms.count), rms.m2.numpy())) + 1e-8)
+        rms = self.ret_rms  # in numpy: the torch ops of `var` cost more than the arithmetic
+        return float(inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon))
 
     def value(self, obs_norm: torch.Tensor) -> torch.Tensor:
         return self.value_net(obs_norm).squeeze(-1)
@@ -177,7 +168,7 @@ class ActorCritic(nn.Module):
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The state (parameters and normalisers) as numpy arrays, by state_dict name."""
-        return {k: v.detach().cpu().numpy() for k, v in self.state_dict().items()}
+        return state_arrays(self.state_dict())
 
     def numpy_policy(self) -> NumpyPolicy:
         """A torch-free copy of the acting path; it does not follow later changes."""

@@ -38,3 +38,8 @@ def variance(count: float, m2: np.ndarray) -> np.ndarray:
     """M2 / count, or ones until two samples exist (a normaliser that does nothing yet)."""
     m2 = np.asarray(m2, np.float64)
     return m2 / count if count >= 2 else np.ones_like(m2)
+
+
+def inverse_std(count: float, m2: np.ndarray, epsilon: float = NORM_EPSILON) -> np.ndarray:
+    """1 / √(variance + ε): what a normaliser divides by (and the reward scale is)."""
+    return 1.0 / np.sqrt(variance(count, m2) + epsilon)

@@ -2,9 +2,10 @@
 
 The reverse recursion  a_s = ρ_s δ_s + γ_s c_s a_{s+1}  is a linear recurrence: it runs in
 numpy as a doubling scan, log2(T) rounds of whole-array operations (for the learner's [64, 8]
-batches ~20 µs, against ~120 µs for a loop over T and ~580 µs for the [T, T, B]
-discount-product matrix in torch it replaced), exact at terminations (γ_k c_k = 0) with no
-division. `vtrace_terms` keeps a torch interface; the learner calls `vtrace_arrays`.
+batches ~12 µs against ~48 µs for a numpy loop over T; the [T, T, B] discount-product matrix in
+torch that this replaced took ~580 µs, measured on a loaded machine), exact at terminations
+(γ_k c_k = 0) with no division. `vtrace_terms` keeps a torch interface; the learner calls
+`vtrace_arrays`.
 """
 
 from __future__ import annotations
