@@ -5,7 +5,11 @@ replay server acknowledges it; unacknowledged ones are resent after `resend_afte
 replay de-duplicates). A full outbox makes the actor wait: back-pressure instead of loss.
 New parameters arrive through a long poll (one request in flight, answered when a newer
 version exists) that only keeps the latest bytes; the loop loads them between env steps, so the
-actor never stalls on the network.
+actor never stalls on the network. The actor asks for them once per fragment, when its
+fragments complete (IMPALA's actors refresh at the start of each unroll): a learner that
+updates every few milliseconds would otherwise have every update shipped to and decoded by
+every actor, and the parameter traffic (the learner's encoding, the router, the actors'
+decoding) would cost more CPU than the acting it steers.
 """
 
 from __future__ import annotations
@@ -168,8 +172,8 @@ class ActorService:
 
     def _pull_params(self) -> None:
         """Long-poll the learner for the next version: one request in flight, answered as soon
-        as a version newer than ours exists, asked again once the loop has loaded it. On a thin
-        link only parameters that will be used cross it."""
+        as a version newer than ours exists, asked again when the loop wants newer ones (at its
+        fragment boundaries). On a thin link only parameters that will be used cross it."""
         while not self.stop:
             if not self.params_wanted.wait(0.5):
                 continue
@@ -195,7 +199,6 @@ class ActorService:
             data, self.latest_params = self.latest_params, None
         if data is None:
             return False
-        self.params_wanted.set()
         try:
             message = decode(data, Params, max_bytes=self.config.max_message_bytes)
             if message.version < self.policy_version:
@@ -230,7 +233,10 @@ class ActorService:
         last_steps = 0
         while not self.stop:
             self.refresh_params()
-            for fragment in self.collector.step():
+            fragments = self.collector.step()
+            if fragments:  # a fragment boundary: ask for the newest version for the next ones
+                self.params_wanted.set()
+            for fragment in fragments:
                 self.send(fragment)
             now = time.monotonic()
             if now - last_check >= 0.5:

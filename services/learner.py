@@ -124,8 +124,8 @@ class LearnerService:
         self.count = 0
         self.wait_s = self.update_s = 0.0
         self.params_bytes = b""
-        self.params_version = -1
-        self.waiting_queries: list = []
+        self.params_version = self.current_version = -1  # the encoded one, the latest one
+        self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
         self.params_lock = threading.Lock()
         s, k = session, self.keys
         # Monitors may subscribe; actors pull through params/latest instead (see
@@ -193,37 +193,62 @@ class LearnerService:
         return path
 
     # -- parameters down
-    def publish_params(self) -> None:
-        """Answer the actors' waiting parameter queries with the new version (and put it on the
-        `params` key for any monitor)."""
+    def publish_params(self, eager: bool = False) -> None:
+        """A new version exists: answer the queries waiting for one (and put it on the `params`
+        key for any monitor). Encoded only when someone takes it: actors ask once per fragment,
+        far less often than the learner updates."""
         version = self.param_version()
         self.versions.reserve(version)  # on disk before any actor can hold this version
-        data = encode(params_message(state_arrays(self.state), version,
-                                     self.config.params_dtype))
         with self.params_lock:
-            self.params_bytes, self.params_version = data, version
-            waiting, self.waiting_queries = self.waiting_queries, []
-        for query in waiting:
-            self._reply(query, data)
+            self.current_version = version
+        if eager:
+            self._encoded_params()
+        self.serve_params()
         # Nobody subscribed (the usual case: actors pull): no copy to send. Zenoh builds
         # without matching status put anyway.
         matching = getattr(self.params_publisher, "matching_status", None)
         if matching is None or matching.matching:
-            self.params_publisher.put(data)
+            self.params_publisher.put(self._encoded_params())
+
+    def _encoded_params(self) -> bytes:
+        """The current version's bytes, encoded once (main thread only: updates change the
+        arrays in place)."""
+        if self.params_version != self.current_version:
+            data = encode(params_message(state_arrays(self.state), self.current_version,
+                                         self.config.params_dtype))
+            with self.params_lock:
+                self.params_bytes, self.params_version = data, self.current_version
+        return self.params_bytes
+
+    def serve_params(self) -> None:
+        """Answer the waiting queries that the current version satisfies."""
+        with self.params_lock:
+            if not self.waiting_queries:
+                return
+            due = [q for q, after in self.waiting_queries if after < self.current_version]
+            self.waiting_queries = [(q, after) for q, after in self.waiting_queries
+                                    if after >= self.current_version]
+        if due:
+            data = self._encoded_params()
+            for query in due:
+                self._reply(query, data)
 
     def _answer_latest(self, query) -> None:
         """Long poll: `params/latest?after=V` is answered as soon as a version newer than V
-        exists. Actors pull one version at a time, so a thin link carries only parameters
-        someone will use and never queues stale ones ahead of acks."""
+        exists: at once when the current version's bytes are at hand, else by the loop
+        between two updates (`serve_params`). Actors pull one version at a time, so a thin
+        link carries only parameters someone will use and never queues stale ones ahead of
+        acks."""
         after = query.parameters.get("after")
         try:
             after = int(after) if after is not None else -1
         except ValueError:
             after = -1
         with self.params_lock:
-            data = self.params_bytes if self.params_version > after else b""
-            if not data:
-                self.waiting_queries.append(query)
+            ready = self.params_version == self.current_version > after
+            data = self.params_bytes if ready else b""
+            if not ready:
+                self.waiting_queries.append((query, after))
         if data:
             self._reply(query, data)
 
@@ -275,7 +300,7 @@ class LearnerService:
         cfg = self.config
         (self.run_dir / "config.toml").write_text(to_toml(cfg))
         self.metrics.text("hyperparameters", hyperparameter_table(cfg))
-        self.publish_params()
+        self.publish_params(eager=True)  # actors starting up wait for the first version
         for fetcher in self.fetchers:
             fetcher.start()
         say(PROG, f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
@@ -292,6 +317,7 @@ class LearnerService:
             self.wait_s += time.perf_counter() - waited
             if batch is not None:
                 self.train_on(batch)
+            self.serve_params()
             self.drain_stats()
             now = time.monotonic()
             if now - last_stats >= cfg.stats_interval_s:
@@ -448,7 +474,7 @@ class LearnerService:
         self.stop.set("finished")
         with self.params_lock:
             waiting, self.waiting_queries = self.waiting_queries, []
-        for query in waiting:
+        for query, _ in waiting:
             query.drop()
         self.fetch_cancel.cancel()  # no thread may sit in a query when the interpreter exits
         for fetcher in self.fetchers:
