@@ -7,6 +7,11 @@ log is rotated at the moment the state is captured, so restore = newest complete
 every log segment from that point on. Old segments and snapshots are deleted once a newer
 snapshot is complete.
 
+A snapshot's state is msgpack (`encode_state`): plain values, lists, maps and numpy arrays of
+numeric dtypes, nothing that names a type to build, so a run dir handed over by someone else
+cannot run code when it is restored; the replay server checks the decoded state's fields before
+it uses them, as it checks a message from the wire.
+
 A snapshot is written into a temporary directory and becomes valid only when its `COMPLETE`
 marker (sizes and CRCs of its files) is in place and the directory renamed; anything else is
 ignored and cleaned up. Capturing the state is a shallow copy on the server's loop thread; the
@@ -21,7 +26,6 @@ from __future__ import annotations
 
 import json
 import os
-import pickle
 import shutil
 import struct
 import threading
@@ -30,14 +34,73 @@ import zlib
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import msgpack
+import numpy as np
+
 _HEADER = struct.Struct("<II")
 _SEGMENT = "wal-{:08d}.log"
 _SNAPSHOT = "snapshot-{:08d}"
 MARKER = "COMPLETE"
+STATE_FILE = "state.msgpack"
+_EXT_ARRAY, _EXT_BIG_INT = 1, 2
+# The dtypes a state may hold: numbers and booleans, never objects.
+_DTYPES = frozenset(np.dtype(t).str for t in (
+    np.bool_, np.int8, np.int16, np.int32, np.int64, np.uint8, np.uint16, np.uint32, np.uint64,
+    np.float16, np.float32, np.float64))
 
 
 class CorruptRecord(Exception):
     pass
+
+
+def _pack_value(value):
+    if isinstance(value, np.ndarray):
+        array = np.ascontiguousarray(value)
+        if array.dtype.str not in _DTYPES:
+            raise TypeError(f"a state array of dtype {array.dtype} cannot be stored")
+        return msgpack.ExtType(_EXT_ARRAY, msgpack.packb(
+            [array.dtype.str, list(array.shape), array.tobytes()]))
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, int):  # beyond 64 bits (a PCG64 generator's state)
+        return msgpack.ExtType(_EXT_BIG_INT, str(value).encode())
+    if isinstance(value, (set, frozenset)):
+        return sorted(value)
+    raise TypeError(f"a state value of type {type(value).__name__} cannot be stored")
+
+
+def _unpack_ext(code: int, data: bytes):
+    if code == _EXT_BIG_INT:
+        text = data.decode("ascii")
+        if not text.lstrip("-").isdigit():
+            raise CorruptRecord(f"a big integer reads {text[:40]!r}")
+        return int(text)
+    if code != _EXT_ARRAY:
+        raise CorruptRecord(f"unknown value type {code} in a state file")
+    try:
+        dtype, shape, raw = msgpack.unpackb(data)
+        if dtype not in _DTYPES:
+            raise CorruptRecord(f"an array of dtype {dtype!r}: only numbers are stored")
+        if not all(isinstance(n, int) and n >= 0 for n in shape):
+            raise CorruptRecord(f"an array of shape {shape!r}")
+        return np.frombuffer(raw, dtype=np.dtype(dtype)).reshape(shape).copy()
+    except (ValueError, TypeError) as exc:
+        raise CorruptRecord(f"a malformed array in a state file ({exc})") from None
+
+
+def encode_state(state) -> bytes:
+    """Msgpack of a state tree: None, bools, ints (any size), floats, strings, bytes, lists and
+    tuples (read back as lists), sets (as sorted lists), maps with string or integer keys, and
+    numpy arrays of numeric dtypes. Anything else is refused."""
+    return msgpack.packb(state, default=_pack_value, use_bin_type=True, strict_types=False)
+
+
+def decode_state(data: bytes):
+    """The tree `encode_state` wrote; builds only the types listed there."""
+    try:
+        return msgpack.unpackb(data, ext_hook=_unpack_ext, raw=False, strict_map_key=False)
+    except (msgpack.UnpackException, ValueError, TypeError) as exc:
+        raise CorruptRecord(f"the state file is not a state ({exc})") from None
 
 
 def append_record(f, payload: bytes) -> None:
@@ -139,8 +202,9 @@ class ReplayPersistence:
             file = path / name
             if file.stat().st_size != expect["bytes"] or _file_crc(file) != expect["crc32"]:
                 raise CorruptRecord(f"{name} does not match its marker")
-        with (path / "state.pkl").open("rb") as f:
-            state = pickle.load(f)
+        state = decode_state((path / STATE_FILE).read_bytes())
+        if not isinstance(state, dict):
+            raise CorruptRecord(f"{STATE_FILE} holds a {type(state).__name__}, not a map")
         items = [decode_item(r) for r in read_records(path / "items.bin", strict=True)]
         state["items"] = items
         return state, int(marker["wal_segment"])
@@ -215,11 +279,11 @@ class ReplayPersistence:
                     append_record(f, encode_item(item))
                 f.flush()
                 os.fsync(f.fileno())
-            with (tmp / "state.pkl").open("wb") as f:
-                pickle.dump(state, f, protocol=pickle.HIGHEST_PROTOCOL)
+            with (tmp / STATE_FILE).open("wb") as f:
+                f.write(encode_state(state))
                 f.flush()
                 os.fsync(f.fileno())
-            for name in ("items.bin", "state.pkl"):
+            for name in ("items.bin", STATE_FILE):
                 files[name] = {"bytes": (tmp / name).stat().st_size,
                                "crc32": _file_crc(tmp / name)}
             marker = {"wal_segment": index, "items": len(items), "files": files,

@@ -69,8 +69,43 @@ class SeqWindow:
         return self.low, sorted(self.above)
 
 
-SNAPSHOT_FORMAT = 1  # of what snapshot() saves; a restore refuses any other
+SNAPSHOT_FORMAT = 2  # of what snapshot() saves (2: msgpack state); a restore refuses any other
 MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
+
+
+# The fields of a saved state and their types: checked before any is used (a snapshot is read
+# from a run dir that may come from elsewhere, like a message from the wire).
+_SAVED = {"format": int, "env_id": str, "obs_dim": int, "act_dim": int, "replay": dict,
+          "limiter": dict, "inserted_steps": int, "samples_served": int,
+          "priority_updates": int, "ledgers": dict, "items": list}
+_SAVED_LEDGER = {"ingested": int, "duplicates": int, "dropped_busy": int, "windows": dict}
+
+
+def _check_fields(where: str, value, fields: dict) -> None:
+    if not isinstance(value, dict):
+        raise ConfigError(f"the replay snapshot's {where} is a {type(value).__name__}, not a map")
+    for name, kind in fields.items():
+        if name not in value:
+            raise ConfigError(f"the replay snapshot's {where} lacks {name!r}")
+        if not isinstance(value[name], kind) or isinstance(value[name], bool) and kind is int:
+            raise ConfigError(f"the replay snapshot's {where}.{name} is "
+                              f"{type(value[name]).__name__}, not {kind.__name__}")
+
+
+def _check_saved(saved) -> None:
+    """Refuse a decoded snapshot state whose fields are missing or of the wrong type."""
+    _check_fields("state", saved, _SAVED)
+    for actor_id, ledger in saved["ledgers"].items():
+        if not isinstance(actor_id, int):
+            raise ConfigError(f"the replay snapshot has a ledger for actor {actor_id!r}")
+        _check_fields(f"ledger of actor {actor_id}", ledger, _SAVED_LEDGER)
+        for incarnation, window in ledger["windows"].items():
+            if not (isinstance(incarnation, int) and isinstance(window, list)
+                    and len(window) == 2 and isinstance(window[0], int)
+                    and isinstance(window[1], list)
+                    and all(isinstance(seq, int) for seq in window[1])):
+                raise ConfigError(f"the replay snapshot's window {incarnation!r} of actor "
+                                  f"{actor_id} is not [low, [seq, …]]")
 
 
 @dataclass
@@ -308,6 +343,7 @@ class ReplayServer:
         return started_write
 
     def _load_state(self, saved: dict) -> None:
+        _check_saved(saved)
         if saved.get("format") != SNAPSHOT_FORMAT:
             raise ConfigError(f"the replay snapshot in the run dir has format "
                               f"{saved.get('format')!r}, this version reads {SNAPSHOT_FORMAT}: "
@@ -324,7 +360,7 @@ class ReplayServer:
                             in zip(state["uniform"], items[prioritized:], strict=True)]
         try:
             self.replay.load_state_dict(state)
-        except ValueError as exc:
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
             raise ConfigError(f"cannot restore the replay state: {exc}; use the same "
                               "capacities, or --restore never") from None
         self.limiter.load_state_dict(saved["limiter"])

@@ -3,11 +3,24 @@ and damaged files."""
 
 from __future__ import annotations
 
+import json
+import pickle
 import threading
+import zlib
 
+import numpy as np
 import pytest
 
-from services.persistence import MARKER, ReplayPersistence, append_record, read_records
+from services.persistence import (
+    MARKER,
+    STATE_FILE,
+    CorruptRecord,
+    ReplayPersistence,
+    append_record,
+    decode_state,
+    encode_state,
+    read_records,
+)
 
 
 def decode(payload: bytes) -> str:
@@ -130,3 +143,98 @@ def test_records_round_trip(tmp_path):
         for payload in (b"", b"x" * 70000, b"\x00\xff"):
             append_record(f, payload)
     assert list(read_records(path, strict=True)) == [b"", b"x" * 70000, b"\x00\xff"]
+
+
+class _Planted:
+    """Unpickling this creates a file: the proof that a loader ran code."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def _replace_in_snapshot(snapshot, name: str, data: bytes) -> None:
+    """Put `data` in a snapshot's file and its marker, as someone handing over a run dir could."""
+    (snapshot / name).write_bytes(data)
+    marker = json.loads((snapshot / MARKER).read_text())
+    marker["files"][name] = {"bytes": len(data), "crc32": zlib.crc32(data)}
+    (snapshot / MARKER).write_text(json.dumps(marker))
+
+
+def test_state_files_round_trip_arrays_big_integers_and_integer_keys():
+    state = {"slots": np.array([3, 1], np.int64), "mass": np.linspace(0, 1, 4).reshape(2, 2),
+             "flags": np.array([True, False]), "rng": {"state": 2**127 + 5, "inc": -(2**70)},
+             "ledgers": {7: {"windows": {2**62: (4, [6, 9])}}}, "none": None, "s": "x",
+             "seen": {3, 1}, "f": np.float32(0.5)}
+    back = decode_state(encode_state(state))
+    assert back["slots"].dtype == np.int64 and back["slots"].tolist() == [3, 1]
+    assert back["mass"].shape == (2, 2) and back["mass"][1, 1] == 1.0
+    assert back["flags"].dtype == np.bool_ and back["rng"] == {"state": 2**127 + 5,
+                                                                "inc": -(2**70)}
+    assert back["ledgers"] == {7: {"windows": {2**62: [4, [6, 9]]}}}
+    assert back["seen"] == [1, 3] and back["none"] is None and back["f"] == 0.5
+    back["slots"][0] = 0  # a writable copy, not a view of the file's bytes
+
+
+@pytest.mark.parametrize("value", [np.array(["a"], object), object(), _Planted("/nowhere")])
+def test_state_files_refuse_what_is_not_plain_data(value):
+    with pytest.raises(TypeError, match="cannot be stored"):
+        encode_state({"x": value})
+
+
+@pytest.mark.parametrize("data", [b"\x92\x01", b"\xc7\x03\x09abc",
+                                  b"\xc7\x0f\x01" + bytes(15), b"\xd4\x02\x41"])
+def test_state_files_refuse_damaged_or_foreign_bytes(data):
+    with pytest.raises(CorruptRecord):
+        decode_state(data)
+
+
+def test_a_planted_pickle_in_a_run_dir_does_not_run(tmp_path):
+    """A snapshot of someone else's run dir may hold a pickle, as state.pkl beside the state or
+    in place of it (with a marker that matches): restoring reads neither as code, passes the
+    snapshot over and falls back to the log."""
+    run = tmp_path / "replay"
+    p = ReplayPersistence(run)
+    p.log(b"a")
+    p.snapshot({"n": 1}, ["x"], encode, wait=True)
+    p.log(b"b")
+    p.close()
+    snapshot = next(run.glob("snapshot-*"))
+    proof = tmp_path / "ran"
+    payload = pickle.dumps(_Planted(proof))
+    _replace_in_snapshot(snapshot, "state.pkl", payload)
+    state, _ = ReplayPersistence(run).load(decode)
+    assert state == {"n": 1, "items": ["x"]} and not proof.exists()  # state.pkl is never read
+    _replace_in_snapshot(snapshot, STATE_FILE, payload)
+    q = ReplayPersistence(run)
+    state, records = q.load(decode)
+    assert not proof.exists()
+    assert state is None and "not a state" in q.skipped
+    assert list(records) == [b"a", b"b"]  # the log still holds everything
+
+
+def _saved_state() -> dict:
+    return {"format": 2, "env_id": "E", "obs_dim": 3, "act_dim": 1, "replay": {}, "limiter": {},
+            "inserted_steps": 0, "samples_served": 0, "priority_updates": 0, "items": [],
+            "ledgers": {0: {"ingested": 1, "duplicates": 0, "dropped_busy": 0,
+                            "windows": {5: [1, [3]]}}}}
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda s: s.pop("limiter"), "lacks 'limiter'"),
+    (lambda s: s.update(inserted_steps="12"), "inserted_steps is str, not int"),
+    (lambda s: s.update(inserted_steps=True), "inserted_steps is bool"),
+    (lambda s: s.update(ledgers={"0": {}}), "ledger for actor '0'"),
+    (lambda s: s["ledgers"][0].update(windows={5: [1, 3]}), "is not \\[low, \\[seq"),
+])
+def test_a_saved_replay_state_is_checked_field_by_field(damage, match):
+    from services.config import ConfigError
+    from services.replay import _check_saved
+
+    _check_saved(_saved_state())
+    state = _saved_state()
+    damage(state)
+    with pytest.raises(ConfigError, match=match):
+        _check_saved(state)

@@ -650,3 +650,21 @@ def test_load_state_dict_refuses_another_shape():
     used.insert("x", 1.0, 4)
     with pytest.raises(ValueError, match="empty"):
         used.load_state_dict(state)
+
+
+@pytest.mark.parametrize("damage, match", [
+    (lambda s: s.update(slots=np.array([0, 0])), "distinct slots"),
+    (lambda s: s.update(slots=np.array([0, 99])), "below the capacity 8"),
+    (lambda s: s.update(slot_mass=s["slot_mass"][:1]), "slot_mass has 1 entries for 2"),
+    (lambda s: s.update(slot_steps=np.array([4, 0])), "slot_steps must be > 0"),
+    (lambda s: s["uniform"].append((1, "y")), "2 fields, not 3"),
+])
+def test_load_state_dict_refuses_an_inconsistent_state(damage, match):
+    """A saved state read from a run dir is checked before any of it lands in the buffer."""
+    original = DualReplay(8, 60)
+    for i in range(2):
+        original.insert(f"item{i}", 1.0 + i, 4)
+    state = original.state_dict()
+    damage(state)
+    with pytest.raises(ValueError, match=match):
+        DualReplay(8, 60).load_state_dict(state)

@@ -545,6 +545,7 @@ class DualReplay:
         slots = np.asarray(state["slots"], dtype=np.int64)
         keys = np.asarray(state["slot_keys"], dtype=np.int64)
         steps = np.asarray(state["slot_steps"], dtype=np.int64)
+        _check_saved_slots(state, slots, self._capacity)
         for i, slot in enumerate(slots.tolist()):
             self._items[slot] = state["slot_items"][i]
             self._step_masses[slot] = state["step_masses"][i]
@@ -579,3 +580,22 @@ class DualReplay:
     def _uniform_keys(self) -> list[int]:
         """Keys now in B_u, oldest first (for tests and debugging)."""
         return [entry.key for entry in self._uniform[self._uniform_head :]]
+
+
+def _check_saved_slots(state: dict[str, Any], slots: np.ndarray, capacity: int) -> None:
+    """A saved B_p must be self-consistent before any of it is used: one entry per slot in
+    every per-slot field, distinct slots inside the capacity, positive step counts."""
+    n = len(slots)
+    if slots.ndim != 1 or len(set(slots.tolist())) != n or (n and not (
+            slots.min() >= 0 and slots.max() < capacity)):
+        raise ValueError(f"saved slots {slots.tolist()[:8]}… are not distinct slots below the "
+                         f"capacity {capacity}")
+    for name in ("slot_keys", "slot_steps", "slot_mass", "slot_rank", "step_masses",
+                 "slot_items"):
+        if len(state[name]) != n:
+            raise ValueError(f"saved {name} has {len(state[name])} entries for {n} slots")
+    if n and np.asarray(state["slot_steps"]).min() <= 0:
+        raise ValueError("saved slot_steps must be > 0")
+    for entry in state["uniform"]:
+        if len(entry) != 3:
+            raise ValueError(f"a saved uniform entry has {len(entry)} fields, not 3")
