@@ -31,7 +31,7 @@ from pathlib import Path
 import zenoh
 
 from protocol import Control, DecodeError, Keys, Stats, decode
-from services.config import ConfigError, coerce, load_toml, to_toml
+from services.config import ENV_PREFIX, ConfigError, coerce, load_toml, to_toml
 from services.envs import make_vector_env
 from services.presets import layer, shown
 from services.security import SECURITY_KEYS, ClusterSecurity
@@ -243,6 +243,11 @@ def make_plan(args: argparse.Namespace) -> Plan:
             raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
                               "replay and the learner run once, actors at least once")
     train = dict(data.get("train", {}))
+    # The shell's TPDEB_* training variables rank between the file and the flags, as for any
+    # service; resolved here once, so that train.toml is the whole training configuration and
+    # no child applies them again on top of a flag (see child_environment).
+    train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
+                  for name, value in train_variables(os.environ).items()})
     overrides = {"env_id": args.env_id, "total_timesteps": args.total_timesteps,
                  "seed": args.seed, "run_dir": args.run_dir, "num_envs": args.num_envs}
     train.update({k: v for k, v in overrides.items() if v is not None})
@@ -274,6 +279,23 @@ def make_plan(args: argparse.Namespace) -> Plan:
                 train=train_config, services=start_order(services), source=str(path),
                 link=link, link_endpoint=link_endpoint,
                 restarts=RestartSettings.from_section(cluster, path), security=security)
+
+
+def train_variables(environ) -> dict[str, str]:
+    """The training settings set in an environment: {field: value} of its TPDEB_<FIELD>."""
+    return {f.name: environ[ENV_PREFIX + f.name.upper()] for f in dataclasses.fields(TrainConfig)
+            if ENV_PREFIX + f.name.upper() in environ}
+
+
+def child_environment(environ, *extra: dict) -> dict[str, str]:
+    """A child's environment: the launcher's without the training variables it has already
+    resolved into train.toml (they would outrank the file, and a flag the file carries), then
+    `extra` (the service's own `env`, its credentials) on top."""
+    trained = {ENV_PREFIX + name.upper() for name in train_variables(environ)}
+    env = {k: v for k, v in environ.items() if k not in trained}
+    for more in extra:
+        env.update(more)
+    return env
 
 
 def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:
@@ -670,8 +692,8 @@ class Cluster:
 
     def add(self, spec: ServiceSpec, train_file: Path, index: int) -> None:
         name = spec.role if spec.replicas == 1 else f"{spec.role}-{index}"
-        env = {**os.environ, **{k: str(v) for k, v in spec.env.items()},
-               **self.plan.security.env(user_of(spec.role, index))}
+        env = child_environment(os.environ, {k: str(v) for k, v in spec.env.items()},
+                                self.plan.security.env(user_of(spec.role, index)))
         self.start(Child(
             name, spec.role, self.argv(spec, train_file, index), env,
             self.run_dir / "logs" / f"{name}.log", self.display.echo,
@@ -683,7 +705,7 @@ class Cluster:
     def add_link(self, router: ServiceSpec) -> None:
         # The link is part of the network between the actors and the router: restarted like it.
         self.start(Child("link", "link", self.link_argv(),
-                         {**os.environ, **self.plan.security.env("link")},
+                         child_environment(os.environ, self.plan.security.env("link")),
                          self.run_dir / "logs" / "link.log", self.display.echo,
                          RestartTracker(router.restart, self.plan.restarts), ident="0",
                          has_token=False))

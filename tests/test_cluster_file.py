@@ -1,11 +1,19 @@
 """The cluster file: defaults, overrides, and one clear error per mistake (no processes)."""
 
+import os
 from pathlib import Path
 
 import pytest
 
-from services.cluster import RestartPolicy, RestartSettings, make_plan, parse_args
-from services.config import ConfigError
+from services.cluster import (
+    RestartPolicy,
+    RestartSettings,
+    child_environment,
+    make_plan,
+    parse_args,
+)
+from services.config import ConfigError, resolve, to_toml
+from services.service_config import LearnerServiceConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -28,6 +36,35 @@ def test_default_file_starts_router_replay_learner_then_two_actors(tmp_path):
     assert plan.services[-1].replicas == 2 and plan.train.num_envs == 4
     assert plan.train.env_id == "HalfCheetah-v5"
     assert plan.endpoint.startswith("tcp/127.0.0.1:") and not plan.endpoint.endswith("auto")
+
+
+def test_the_shells_training_variables_rank_below_flags_and_reach_no_child(tmp_path,
+                                                                          monkeypatch):
+    """`TPDEB_SEED=3 tpdeb-cluster --seed 5` trains on seed 5 everywhere: the launcher resolves
+    the variables once (over the file, under the flags) into train.toml and leaves them out of
+    its children's environment, where they would outrank that file."""
+    monkeypatch.setenv("TPDEB_SEED", "3")
+    monkeypatch.setenv("TPDEB_LEARNING_RATE", "1e-4")
+    monkeypatch.setenv("TPDEB_STATS_INTERVAL_S", "2")  # not a training setting: passed on
+    plan = plan_for(tmp_path, None, "--seed", "5")
+    assert plan.train.seed == 5 and plan.train.learning_rate == 1e-4
+    env = child_environment(dict(os.environ), {"OMP_NUM_THREADS": "1"})
+    assert "TPDEB_SEED" not in env and "TPDEB_LEARNING_RATE" not in env
+    assert env["TPDEB_STATS_INTERVAL_S"] == "2" and env["OMP_NUM_THREADS"] == "1"
+    train_file = tmp_path / "train.toml"
+    train_file.write_text(to_toml(plan.train))
+    for name in ("TPDEB_SEED", "TPDEB_LEARNING_RATE", "TPDEB_STATS_INTERVAL_S"):
+        monkeypatch.delenv(name)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    child = resolve(LearnerServiceConfig, ["--config", str(train_file)], "tpdeb-learner", "")
+    assert child.seed == 5 and child.learning_rate == 1e-4 and child.stats_interval_s == 2.0
+
+
+def test_a_bad_training_variable_is_named(tmp_path, monkeypatch):
+    monkeypatch.setenv("TPDEB_SEED", "three")
+    with pytest.raises(ConfigError, match="TPDEB_SEED: seed='three' is not a valid int"):
+        plan_for(tmp_path)
 
 
 def test_flags_override_the_file(tmp_path):
