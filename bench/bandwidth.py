@@ -54,7 +54,7 @@ def run_one(env_id: str, steps: int, seed: int, rate: float, variant: str, compr
         return json.loads(result_file.read_text())
     run_dir = OUT / "runs" / tag
     wire_rate = rate if rate > 0 else UNLIMITED
-    cmd = [sys.executable, "-m", "services.cluster", "--env-id", env_id, "--total-timesteps",
+    cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id, "--total-timesteps",
            str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--actors", "2",
            "--num-envs", "4", "--link-up-bytes-per-s", str(wire_rate),
            "--link-down-bytes-per-s", str(wire_rate), "--set", "log_interval_s=10",

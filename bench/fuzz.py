@@ -90,7 +90,7 @@ class FuzzCounter:
 
     @pytest.hookimpl(hookwrapper=True)
     def pytest_runtest_call(self, item):
-        import protocol.codec as codec
+        import tpdeb.protocol.codec as codec
 
         module = item.module
         original_check = module.decode_or_error
@@ -131,7 +131,7 @@ class FuzzCounter:
         return wrapped
 
     def _counting(self, decode_or_error):
-        from protocol import DecodeError
+        from tpdeb.protocol import DecodeError
 
         def wrapped(data, *args, **kwargs):
             run = self.current

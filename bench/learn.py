@@ -25,7 +25,7 @@ VARIANTS = {"TPDEB (ζ=0.2, KL on)": ["--zeta", "0.2"], "plain replay (ζ=0, KL 
 
 def run_one(env_id, steps, seed, name, extra, out_dir: Path) -> dict:
     run_dir = out_dir / f"{env_id}__{name.split()[0]}{extra[1]}__{seed}"
-    cmd = [sys.executable, "-m", "services.serial", "--env-id", env_id, "--total-timesteps",
+    cmd = [sys.executable, "-m", "tpdeb.services.serial", "--env-id", env_id, "--total-timesteps",
            str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--log-interval-s", "30",
            "--preset", "none",  # the settings these results were measured with
            *extra]

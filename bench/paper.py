@@ -40,8 +40,8 @@ def result_path(tag: str, env_id: str, algo: str, steps: int, seed: int) -> Path
 
 def evaluate(run_dir: Path, episodes: int, seed: int) -> dict | None:
     """Deterministic evaluation of the run's final checkpoint (tpdeb-eval)."""
-    cmd = [sys.executable, "-m", "services.evaluate", str(run_dir), "--episodes", str(episodes),
-           "--seed", str(seed), "--json"]
+    cmd = [sys.executable, "-m", "tpdeb.services.evaluate", str(run_dir),
+           "--episodes", str(episodes), "--seed", str(seed), "--json"]
     proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=1800)
     if proc.returncode != 0:
         print(f"[paper]   evaluation failed: {proc.stderr.strip()[-300:]}", flush=True)
@@ -51,7 +51,7 @@ def evaluate(run_dir: Path, episodes: int, seed: int) -> dict | None:
 
 def finished(run_dir: Path, steps: int) -> bool:
     """The learner reached `steps` and wrote its final checkpoint."""
-    from services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     return run_dir.is_dir() and any(c.tag == FINAL and c.global_step >= steps
                                     for c in list_checkpoints(checkpoint_dir(run_dir)))
@@ -59,7 +59,7 @@ def finished(run_dir: Path, steps: int) -> bool:
 
 def cluster_wall_s(run_dir: Path) -> float:
     """Seconds from the run dir's creation to its final checkpoint."""
-    from services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     final = [c for c in list_checkpoints(checkpoint_dir(run_dir)) if c.tag == FINAL]
     return final[-1].path.stat().st_mtime - (run_dir / "cluster.json").stat().st_mtime

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 from runs import ROOT  # noqa: I001  (bench/ is on sys.path)
 
-from services.plot import band, label_axes, save, smooth
+from tpdeb.services.plot import band, label_axes, save, smooth
 
 # SB3-zoo tuned PPO's published 1M returns, CleanRL PPO's for Humanoid: the bar and the
 # Table 2 thresholds.

@@ -60,7 +60,7 @@ def rss_kib(pid: int) -> int | None:
 
 
 def service_name(argv: list[str]) -> str | None:
-    """`actor-0`, `replay`, … from a command line (`tpdeb-x` script or `-m services.x`)."""
+    """`actor-0`, `replay`, … from a command line (`tpdeb-x` script or `-m tpdeb.services.x`)."""
     role = None
     for i, arg in enumerate(argv):
         base = os.path.basename(arg)

@@ -16,7 +16,7 @@ update recomputes all normalised sampling weights p/Σp, and sampling is np.rand
 (its B_u half is the same cheap uniform draw). It runs up to 10^5, and at 10^6 only when the 10^5
 timings predict it takes under a minute.
 
-The goal (SPEC §2) is O(log N): the 10^6 / 10^3 time ratio of each op should stay <= 3.
+The goal (DESIGN §2) is O(log N): the 10^6 / 10^3 time ratio of each op should stay <= 3.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tpdeb_core.replay import DualReplay
+from tpdeb.tpdeb_core.replay import DualReplay
 
 BATCH_SIZE = 32
 ZETA = 0.2

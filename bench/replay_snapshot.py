@@ -22,11 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from protocol import Trajectory, decode, encode
-from services.replay import ReplayServer
-from services.service_config import ReplayServiceConfig
-from services.wire import run_spec
-from services.zsession import StopSignal
+from tpdeb.protocol import Trajectory, decode, encode
+from tpdeb.services.replay import ReplayServer
+from tpdeb.services.service_config import ReplayServiceConfig
+from tpdeb.services.wire import run_spec
+from tpdeb.services.zsession import StopSignal
 
 T, OBS, ACT = 64, 17, 6
 

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from services.metrics import read_metrics
+from tpdeb.services.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -25,7 +25,7 @@ def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[s
                 log_path: Path, timeout_s: float) -> tuple[int, float]:
     """One cluster run to `steps` env steps; returns (exit code, wall seconds). The whole
     process group is stopped on timeout or when this process is interrupted."""
-    cmd = [sys.executable, "-m", "services.cluster", "--env-id", env_id, "--total-timesteps",
+    cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id, "--total-timesteps",
            str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--set",
            "log_interval_s=10", *extra]
     log_path.parent.mkdir(parents=True, exist_ok=True)

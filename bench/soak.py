@@ -137,7 +137,7 @@ def order(name: str) -> tuple:
 
 def cluster_command() -> list[str]:
     script = Path(sys.executable).parent / "tpdeb-cluster"  # a venv needs no activation
-    return [str(script)] if script.exists() else [sys.executable, "-m", "services.cluster"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "tpdeb.services.cluster"]
 
 
 def stop_cluster(proc: subprocess.Popen, timeout_s: float) -> int | None:

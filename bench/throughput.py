@@ -13,7 +13,7 @@ Each run measures, on this machine and one after another (nothing else should ru
    priorities, every fragment encoded);
 3. the learner limit: in-memory updates/s × batch steps ÷ replay ratio (the env steps/s the
    learner could absorb);
-4. the cluster (`python -m services.cluster`, the default config with the task's preset): its
+4. the cluster (`python -m tpdeb.services.cluster`, the default config with the task's preset): its
    stdout is time-stamped line by line; steady env steps/s and updates/s come from the learner's
    progress lines, launch → first update from a Zenoh client of this script that sees the
    learner's first parameters with version ≥ 1, peak RSS of every process from /proc (0.2 s);
@@ -48,15 +48,15 @@ import numpy as np
 import torch
 from procfs import cmdline, descendants, proc_table, rss_kib, service_name
 
-from protocol import DecodeError, Keys, Params, decode, encode
-from services.config import resolve
-from services.envs import make_vector_env, space_dims
-from services.model_wire import model_for, params_message
-from services.train_config import TrainConfig
-from services.wire import fragment_to_message, policy_from_params, run_spec
-from services.zsession import open_session
-from tpdeb_core.fragments import Collector, stack_fragments
-from tpdeb_core.learner import Learner
+from tpdeb.protocol import DecodeError, Keys, Params, decode, encode
+from tpdeb.services.config import resolve
+from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.model_wire import model_for, params_message
+from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.wire import fragment_to_message, policy_from_params, run_spec
+from tpdeb.services.zsession import open_session
+from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
+from tpdeb.tpdeb_core.learner import Learner
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -234,9 +234,9 @@ def bench_imports() -> dict:
     """Seconds to import each entry point's module in a fresh interpreter (what a process pays
     before its first line of work)."""
     out = {}
-    for name, module in (("router", "services.router"), ("replay", "services.replay"),
-                         ("learner", "services.learner"), ("actor", "services.actor"),
-                         ("cluster", "services.cluster")):
+    for name, module in (("router", "tpdeb.services.router"), ("replay", "tpdeb.services.replay"),
+                         ("learner", "tpdeb.services.learner"), ("actor", "tpdeb.services.actor"),
+                         ("cluster", "tpdeb.services.cluster")):
         code = f"import time; t = time.perf_counter(); import {module}; " \
                "print(time.perf_counter() - t)"
         runs = [float(subprocess.run([sys.executable, "-c", code], cwd=ROOT, check=True,
@@ -247,7 +247,8 @@ def bench_imports() -> dict:
 
 def bench_env_construction(env_id: str, num_envs: int) -> float:
     """Seconds to build the vector env in a fresh interpreter, imports excluded."""
-    code = ("import time; from services.envs import make_vector_env; t = time.perf_counter(); "
+    code = ("import time; from tpdeb.services.envs import make_vector_env; "
+            "t = time.perf_counter(); "
             f"make_vector_env({env_id!r}, {num_envs}).close(); print(time.perf_counter() - t)")
     return statistics.median(float(subprocess.run(
         [sys.executable, "-c", code], cwd=ROOT, check=True, capture_output=True,
@@ -394,7 +395,7 @@ def run_cluster(args, actors: int, out_dir: Path) -> dict:
     log_path = out_dir / f"cluster_{actors}actors.log"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     run_id = f"bench{os.getpid()}a{actors}"
-    argv = [sys.executable, "-m", "services.cluster", "--env-id", args.env_id,
+    argv = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", args.env_id,
             "--total-timesteps", str(args.total_timesteps), "--run-dir", str(run_dir),
             "--actors", str(actors), "--num-envs", str(args.num_envs), "--seed", str(args.seed),
             "--endpoint", endpoint, "--run-id", run_id,

@@ -3,7 +3,7 @@
 Imports numpy and msgpack only; nothing here knows about torch, Zenoh sessions or files.
 """
 
-from protocol.codec import (
+from tpdeb.protocol.codec import (
     ERROR_KINDS,
     DecodeError,
     check_params_shapes,
@@ -11,8 +11,8 @@ from protocol.codec import (
     encode,
     encoded_size_limit,
 )
-from protocol.keys import SCHEMA_VERSION, Keys
-from protocol.messages import (
+from tpdeb.protocol.keys import SCHEMA_VERSION, Keys
+from tpdeb.protocol.messages import (
     MESSAGE_TYPES,
     Ack,
     Batch,

@@ -1,4 +1,4 @@
-"""msgpack codec (SPEC §3): a versioned envelope, arrays as raw bytes, decode that checks all.
+"""msgpack codec (DESIGN §3): a versioned envelope, arrays as raw bytes, decode that checks all.
 
 On the wire every message is {"v": SCHEMA_VERSION, "type": class name, "body": {field: value}};
 an array is {"__nd__": True, "dtype": "<f4", "shape": [...], "data": bytes}. Decoding builds
@@ -12,9 +12,9 @@ import msgpack
 import numpy as np
 import zstandard
 
-from protocol.keys import SCHEMA_VERSION
-from protocol.messages import MESSAGE_TYPES, Params, RunSpec
-from protocol.schema import (
+from tpdeb.protocol.keys import SCHEMA_VERSION
+from tpdeb.protocol.messages import MESSAGE_TYPES, Params, RunSpec
+from tpdeb.protocol.schema import (
     ERROR_KINDS,
     WIRE_DTYPES,
     DecodeError,

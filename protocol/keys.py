@@ -1,4 +1,4 @@
-"""Every Zenoh key expression of one run (SPEC §3), built here and nowhere else."""
+"""Every Zenoh key expression of one run (DESIGN §3), built here and nowhere else."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Every message of TPDEB's wire (SPEC §3): one dataclass each, a rule on every field.
+"""Every message of TPDEB's wire (DESIGN §3): one dataclass each, a rule on every field.
 
 Array shapes name their dimensions. T (steps per fragment), obs_dim and act_dim come from the run
 spec when the decoder has one; otherwise, like B, K, n and k, they are sized by the first field
@@ -13,8 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from protocol.keys import MAX_ACTOR_ID, NAME_RULE, SCHEMA_VERSION
-from protocol.schema import (
+from tpdeb.protocol.keys import MAX_ACTOR_ID, NAME_RULE, SCHEMA_VERSION
+from tpdeb.protocol.schema import (
     Array,
     Bool,
     DecodeError,
@@ -68,7 +68,7 @@ class RunSpec:
 
 @dataclass(eq=False)
 class Trajectory:
-    """One fragment: T steps of one env of one actor (SPEC §2 "Fragments")."""
+    """One fragment: T steps of one env of one actor (DESIGN §2 "Fragments")."""
 
     actor_id: int = wire(Int(le=MAX_ACTOR_ID))
     seq: int = wire(Int())  # per-actor sequence number: acks and de-duplication

@@ -22,7 +22,7 @@ import time
 import numpy as np
 import zenoh
 
-from protocol import (
+from tpdeb.protocol import (
     Ack,
     Control,
     DecodeError,
@@ -32,12 +32,12 @@ from protocol import (
     decode,
     encode,
 )
-from services.config import ConfigError, resolve
-from services.envs import make_vector_env, space_dims
-from services.seeding import seed_everything
-from services.service_config import ActorServiceConfig
-from services.wire import fragment_to_message, policy_from_params, spec_mismatch
-from services.zsession import (
+from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.seeding import seed_everything
+from tpdeb.services.service_config import ActorServiceConfig
+from tpdeb.services.wire import fragment_to_message, policy_from_params, spec_mismatch
+from tpdeb.services.zsession import (
     RateLimitedLog,
     StopSignal,
     close_session,
@@ -46,7 +46,7 @@ from services.zsession import (
     open_for,
     say,
 )
-from tpdeb_core.fragments import Collector
+from tpdeb.tpdeb_core.fragments import Collector
 
 PROG = "tpdeb-actor"
 PARAMS_POLL_S = 10.0

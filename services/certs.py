@@ -20,7 +20,7 @@ import re
 import sys
 from pathlib import Path
 
-from services.config import ConfigError
+from tpdeb.services.config import ConfigError
 
 PROG = "tpdeb-certs"
 FILES = ("ca.pem", "ca.key", "router.pem", "router.key")

@@ -26,8 +26,8 @@ from pathlib import Path
 
 import torch
 
-from services.config import ConfigError
-from services.persistence import fsync_dir
+from tpdeb.services.config import ConfigError
+from tpdeb.services.persistence import fsync_dir
 
 PERIODIC, FINAL = "ckpt", "final"
 _NAME = re.compile(r"(ckpt|final)_(\d+)_(\d+)\.pt")

@@ -1,4 +1,4 @@
-"""`tpdeb-cluster`: a compose-style launcher for the whole run on one machine (SPEC §5).
+"""`tpdeb-cluster`: a compose-style launcher for the whole run on one machine (DESIGN §5).
 
 Reads a cluster file (`deploy/local.toml`), writes the resolved training config into the run
 dir, starts router → replay → learner → actors as separate processes in dependency order (each
@@ -30,14 +30,14 @@ from pathlib import Path
 
 import zenoh
 
-from protocol import Control, DecodeError, Keys, Stats, decode
-from services.config import ENV_PREFIX, ConfigError, coerce, load_toml, to_toml
-from services.envs import make_vector_env
-from services.presets import layer, shown
-from services.security import SECURITY_KEYS, ClusterSecurity
-from services.service_config import ServiceConfig
-from services.train_config import TrainConfig
-from services.zsession import fetch_spec, open_session
+from tpdeb.protocol import Control, DecodeError, Keys, Stats, decode
+from tpdeb.services.config import ENV_PREFIX, ConfigError, coerce, load_toml, to_toml
+from tpdeb.services.envs import make_vector_env
+from tpdeb.services.presets import layer, shown
+from tpdeb.services.security import SECURITY_KEYS, ClusterSecurity
+from tpdeb.services.service_config import ServiceConfig
+from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.zsession import fetch_spec, open_session
 
 PROG = "tpdeb-cluster"
 ROOT = Path(__file__).resolve().parents[1]
@@ -439,7 +439,7 @@ class ServiceView:
 
 
 class Health:
-    """Which services are alive, from their liveliness tokens (SPEC §3) and the age of their
+    """Which services are alive, from their liveliness tokens (DESIGN §3) and the age of their
     stats; rendered as the `up: …` part of the status line. Thread-safe: Zenoh callbacks feed
     it, the supervisor reads it."""
 

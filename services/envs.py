@@ -9,7 +9,7 @@ import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 
-from services.config import ConfigError
+from tpdeb.services.config import ConfigError
 
 # MuJoCo warnings that say nothing to a user: gymnasium's MuJoCo XML (HalfCheetah's among
 # others) still uses the deprecated, harmless `settotalmass`, printed once per env built.

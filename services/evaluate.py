@@ -28,7 +28,7 @@ class EvalError(Exception):
 
 def find_checkpoint(target: Path) -> Path:
     """A checkpoint file as given, or a run dir's final checkpoint (else its newest one)."""
-    from services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     if target.is_file():
         return target
@@ -44,8 +44,8 @@ def find_checkpoint(target: Path) -> Path:
 
 def load_policy(path: Path, env_id: str | None):
     """(model, env_id) from a checkpoint; refuses one trained on another env than `env_id`."""
-    from services.checkpoint import read_checkpoint
-    from tpdeb_core.model import ActorCritic
+    from tpdeb.services.checkpoint import read_checkpoint
+    from tpdeb.tpdeb_core.model import ActorCritic
 
     try:
         state = read_checkpoint(path)
@@ -75,7 +75,7 @@ def load_policy(path: Path, env_id: str | None):
 def make_env(env_id: str, video: bool):
     import gymnasium as gym
 
-    from services.envs import quiet_mujoco
+    from tpdeb.services.envs import quiet_mujoco
 
     quiet_mujoco()
     if video:

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 import zenoh
 
-from protocol import (
+from tpdeb.protocol import (
     Control,
     DecodeError,
     Keys,
@@ -44,7 +44,7 @@ from protocol import (
     decode,
     encode,
 )
-from services.checkpoint import (
+from tpdeb.services.checkpoint import (
     FINAL,
     PERIODIC,
     VersionMark,
@@ -55,14 +55,14 @@ from services.checkpoint import (
     set_aside,
     spec_problem,
 )
-from services.config import ConfigError, resolve, to_toml
-from services.metrics import MetricsWriter, hyperparameter_table
-from services.model_wire import model_for, params_message
-from services.presets import shown
-from services.seeding import seed_everything
-from services.service_config import LearnerServiceConfig
-from services.wire import batch_of, finite_values
-from services.zsession import (
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.metrics import MetricsWriter, hyperparameter_table
+from tpdeb.services.model_wire import model_for, params_message
+from tpdeb.services.presets import shown
+from tpdeb.services.seeding import seed_everything
+from tpdeb.services.service_config import LearnerServiceConfig
+from tpdeb.services.wire import batch_of, finite_values
+from tpdeb.services.zsession import (
     RateLimitedLog,
     StopSignal,
     close_session,
@@ -71,8 +71,8 @@ from services.zsession import (
     open_for,
     say,
 )
-from tpdeb_core.learner import Learner
-from tpdeb_core.model import state_arrays
+from tpdeb.tpdeb_core.learner import Learner
+from tpdeb.tpdeb_core.model import state_arrays
 
 PROG = "tpdeb-learner"
 LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")

@@ -1,4 +1,4 @@
-"""`tpdeb-link`: a constrained actor ↔ learner-side link (SPEC §4), as a TCP bridge.
+"""`tpdeb-link`: a constrained actor ↔ learner-side link (DESIGN §4), as a TCP bridge.
 
 Actors connect to the link's `--listen` endpoint instead of the router; the link connects each
 of them on to the router (`--connect`). Zenoh runs over TCP, so the services need no change to
@@ -21,9 +21,9 @@ import sys
 import time
 from dataclasses import dataclass
 
-from services.config import ConfigError, resolve
-from services.security import Security, check_settings
-from services.zsession import check_endpoints, fail, say
+from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.security import Security, check_settings
+from tpdeb.services.zsession import check_endpoints, fail, say
 
 PROG = "tpdeb-link"
 UNLIMITED_CHUNK = 64 * 1024
@@ -270,8 +270,8 @@ def stats_reporter(config: LinkConfig):
         return (lambda values: None), (lambda: None)
     import numpy as np
 
-    from protocol import Keys, Stats, encode
-    from services.zsession import open_session
+    from tpdeb.protocol import Keys, Stats, encode
+    from tpdeb.services.zsession import open_session
 
     session = open_session("client", [], [config.connect], 60.0, security=Security(
         tls_ca=config.tls_ca, user=config.user, password=config.password))

@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from protocol import Params, RunSpec
-from tpdeb_core.model import ActorCritic
+from tpdeb.protocol import Params, RunSpec
+from tpdeb.tpdeb_core.model import ActorCritic
 
 FLOAT16_MAX = float(np.finfo(np.float16).max)
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from services.config import ConfigError, coerce, load_toml
+from tpdeb.services.config import ConfigError, coerce, load_toml
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "deploy" / "presets"
 # Settings that say which run this is, not how to learn: never part of a preset.
@@ -29,7 +29,7 @@ def _ppo_per(values: dict) -> dict:
             "clip_anchor": "behaviour", "kl_coef": 0.0, "kl_target": 0.0}
 
 
-# What each algorithm is made of (SPEC §7, "Baselines"), as settings over the task's preset;
+# What each algorithm is made of (DESIGN §7, "Baselines"), as settings over the task's preset;
 # a function of the other values where it depends on them.
 ALGORITHMS = {
     # The paper's method: both buffers, trajectory priorities, KL(μ‖π_θ), soft target τ.

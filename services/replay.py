@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from protocol import (
+from tpdeb.protocol import (
     Ack,
     Control,
     DecodeError,
@@ -36,14 +36,14 @@ from protocol import (
     decode,
     encode,
 )
-from services.config import ConfigError, resolve, to_toml
-from services.envs import make_vector_env, space_dims
-from services.persistence import ReplayPersistence
-from services.service_config import ReplayServiceConfig
-from services.wire import batch_message, finite_values, message_to_fragment, run_spec
-from services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
-from tpdeb_core.fragments import stack_fragments
-from tpdeb_core.moments import batch_moments, merge_moments
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.persistence import ReplayPersistence
+from tpdeb.services.service_config import ReplayServiceConfig
+from tpdeb.services.wire import batch_message, finite_values, message_to_fragment, run_spec
+from tpdeb.services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
+from tpdeb.tpdeb_core.fragments import stack_fragments
+from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
 _NO_MOMENTS = (0.0, 0.0, 0.0)

@@ -12,10 +12,10 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.config import ConfigError, resolve
-from services.security import access_control, read_auth_file
-from services.service_config import DEFAULT_ENDPOINT, ServiceConfig
-from services.zsession import StopSignal, close_session, fail, open_for, say
+from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.security import access_control, read_auth_file
+from tpdeb.services.service_config import DEFAULT_ENDPOINT, ServiceConfig
+from tpdeb.services.zsession import StopSignal, close_session, fail, open_for, say
 
 PROG = "tpdeb-router"
 

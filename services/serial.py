@@ -17,16 +17,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from services.checkpoint import save_training
-from services.config import ConfigError, resolve, to_toml
-from services.envs import make_vector_env, space_dims
-from services.metrics import MetricsWriter, hyperparameter_table
-from services.presets import shown
-from services.seeding import seed_everything
-from services.train_config import TrainConfig
-from tpdeb_core.fragments import Collector, stack_fragments
-from tpdeb_core.learner import Learner
-from tpdeb_core.model import ActorCritic
+from tpdeb.services.checkpoint import save_training
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.metrics import MetricsWriter, hyperparameter_table
+from tpdeb.services.presets import shown
+from tpdeb.services.seeding import seed_everything
+from tpdeb.services.train_config import TrainConfig
+from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
+from tpdeb.tpdeb_core.learner import Learner
+from tpdeb.tpdeb_core.model import ActorCritic
 
 
 class SerialRunner:

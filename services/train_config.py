@@ -1,6 +1,7 @@
 """The training configuration shared by the single-process runner and the distributed services.
 
-Defaults are the measured starting point of SPEC §2. Flag names follow CleanRL where it has one.
+Defaults are a measured starting point (a prototype's, on InvertedPendulum and HalfCheetah;
+the task presets in deploy/presets/ tune them). Flag names follow CleanRL where it has one.
 """
 
 from __future__ import annotations
@@ -10,10 +11,10 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from services.config import ConfigError
-from tpdeb_core.loss_config import LossConfig
-from tpdeb_core.rate_limiter import RateLimiter
-from tpdeb_core.replay import PRIORITY_MODES, RETENTIONS, DualReplay
+from tpdeb.services.config import ConfigError
+from tpdeb.tpdeb_core.loss_config import LossConfig
+from tpdeb.tpdeb_core.rate_limiter import RateLimiter
+from tpdeb.tpdeb_core.replay import PRIORITY_MODES, RETENTIONS, DualReplay
 
 ALGOS = ("tpdeb", "impact", "ppo-per")
 

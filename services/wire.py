@@ -11,11 +11,11 @@ import math
 
 import numpy as np
 
-from protocol import Batch, DecodeError, Params, RunSpec, Trajectory
-from protocol.codec import check_params_shapes
-from services.train_config import TrainConfig
-from tpdeb_core.fragments import Fragment, FragmentBatch
-from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
+from tpdeb.protocol import Batch, DecodeError, Params, RunSpec, Trajectory
+from tpdeb.protocol.codec import check_params_shapes
+from tpdeb.services.train_config import TrainConfig
+from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch
+from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 _FRAGMENT_FIELDS = [f.name for f in dataclasses.fields(Fragment)]
 _BATCH_FIELDS = [f.name for f in dataclasses.fields(FragmentBatch)]

@@ -1,4 +1,4 @@
-"""Zenoh session setup and the process plumbing every service shares (SPEC §3, "Zenoh facts").
+"""Zenoh session setup and the process plumbing every service shares (DESIGN §3, "Zenoh facts").
 
 Topology of the embedded default: the replay server opens a `router`-mode session listening on
 `--listen`; the learner and the actors open `client` sessions connected to it, so everything
@@ -18,11 +18,11 @@ import time
 
 import zenoh
 
-from protocol import DecodeError, Keys, RunSpec, decode
-from services.config import ConfigError
-from services.security import Security, security_of
+from tpdeb.protocol import DecodeError, Keys, RunSpec, decode
+from tpdeb.services.config import ConfigError
+from tpdeb.services.security import Security, security_of
 
-# A put blocked longer than this closes the transport and loses the data (SPEC §3). Actors
+# A put blocked longer than this closes the transport and loses the data (DESIGN §3). Actors
 # already bound their outbox, so waiting long here only delays them, it never loses anything.
 BLOCK_WAIT_BEFORE_CLOSE_MS = 60_000
 

@@ -13,9 +13,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = {"replay": "services.replay", "learner": "services.learner",
-           "actor": "services.actor", "cluster": "services.cluster",
-           "router": "services.router", "link": "services.link", "certs": "services.certs"}
+MODULES = {name: f"tpdeb.services.{name}"
+           for name in ("replay", "learner", "actor", "cluster", "router", "link", "certs")}
 
 
 def free_port() -> int:

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from tpdeb_core.adam import Adam, _fused_kernel_works
+from tpdeb.tpdeb_core.adam import Adam, _fused_kernel_works
 
 
 def params(seed=0):

@@ -8,11 +8,11 @@ import pytest
 import torch
 from torch.distributions import Independent, Normal, kl_divergence
 
-from services.config import resolve
-from services.train_config import TrainConfig
 from tests.test_learner import fragments_and_model
-from tpdeb_core.fragments import stack_fragments
-from tpdeb_core.learner import Learner
+from tpdeb.services.config import resolve
+from tpdeb.services.train_config import TrainConfig
+from tpdeb.tpdeb_core.fragments import stack_fragments
+from tpdeb.tpdeb_core.learner import Learner
 
 
 def config(algo: str, **flags) -> TrainConfig:

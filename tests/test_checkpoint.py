@@ -13,19 +13,19 @@ import numpy as np
 import pytest
 import torch
 
-from protocol import Keys, Params, Stats, decode
-from services import checkpoint as ckpt
-from services.config import ConfigError
-from services.learner import LearnerService
-from services.metrics import MetricsWriter, read_metrics
-from services.service_config import LearnerServiceConfig
-from services.wire import run_spec
-from services.zsession import StopSignal, open_session
 from tests.procs import Procs, free_port, pids_with
 from tests.test_learner import fragments_and_model
-from tpdeb_core.fragments import stack_fragments
-from tpdeb_core.learner import Learner, LossConfig
-from tpdeb_core.model import ActorCritic
+from tpdeb.protocol import Keys, Params, Stats, decode
+from tpdeb.services import checkpoint as ckpt
+from tpdeb.services.config import ConfigError
+from tpdeb.services.learner import LearnerService
+from tpdeb.services.metrics import MetricsWriter, read_metrics
+from tpdeb.services.service_config import LearnerServiceConfig
+from tpdeb.services.wire import run_spec
+from tpdeb.services.zsession import StopSignal, open_session
+from tpdeb.tpdeb_core.fragments import stack_fragments
+from tpdeb.tpdeb_core.learner import Learner, LossConfig
+from tpdeb.tpdeb_core.model import ActorCritic
 
 ENV = "InvertedPendulum-v5"
 
@@ -132,7 +132,7 @@ def test_a_failed_periodic_checkpoint_is_one_line_and_training_goes_on(tmp_path,
     def disk_full(*_args, **_kw):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr("services.learner.save_training", disk_full)
+    monkeypatch.setattr("tpdeb.services.learner.save_training", disk_full)
     try:
         assert service.periodic_checkpoint() is None
     finally:

@@ -5,15 +5,15 @@ from pathlib import Path
 
 import pytest
 
-from services.cluster import (
+from tpdeb.services.cluster import (
     RestartPolicy,
     RestartSettings,
     child_environment,
     make_plan,
     parse_args,
 )
-from services.config import ConfigError, resolve, to_toml
-from services.service_config import LearnerServiceConfig
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.service_config import LearnerServiceConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 

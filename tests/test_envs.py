@@ -2,12 +2,12 @@
 
 import io
 
-from services.envs import mujoco_warning
 from tests.procs import python_c
+from tpdeb.services.envs import mujoco_warning
 
 
 def test_mujoco_deprecation_notice_is_silenced_at_its_source():
-    code = ("from services.envs import make_vector_env; "
+    code = ("from tpdeb.services.envs import make_vector_env; "
             "make_vector_env('HalfCheetah-v5', 2).close(); print('built')")
     out = python_c(code)
     assert out.stdout.strip() == "built"

@@ -11,12 +11,12 @@ from pathlib import Path
 
 import pytest
 
-from protocol import Ack, Keys, Stats, Trajectory, decode
-from services.metrics import read_metrics
-from services.persistence import ReplayPersistence
-from services.zsession import open_session
 from tests.procs import free_port, pids_with
 from tests.test_services import next_stats, watch_stats
+from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode
+from tpdeb.services.metrics import read_metrics
+from tpdeb.services.persistence import ReplayPersistence
+from tpdeb.services.zsession import open_session
 
 ENV = "InvertedPendulum-v5"
 

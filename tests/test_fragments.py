@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 
 from tests.fakes import ScriptedVectorEnv
-from tpdeb_core.fragments import Collector, fragment_priority, fragment_return
-from tpdeb_core.model import ActorCritic
+from tpdeb.tpdeb_core.fragments import Collector, fragment_priority, fragment_return
+from tpdeb.tpdeb_core.model import ActorCritic
 
 T = 8
 

@@ -1,4 +1,4 @@
-"""SPEC §1: imports go one way, and the algorithm layer does no I/O."""
+"""The layers: imports go one way, and the algorithm layer does no I/O."""
 
 import ast
 from pathlib import Path
@@ -19,17 +19,38 @@ PROTOCOL_ALLOWED = {"numpy", "msgpack", "zstandard", "protocol", "__future__", "
                     "typing", "collections", "math", "re", "itertools", "functools", "enum"}
 
 
+def root_of(module: str) -> str:
+    """`numpy.linalg` → numpy; our own `tpdeb.protocol.codec` → protocol (the layer)."""
+    parts = module.split(".")
+    return parts[1] if parts[0] == "tpdeb" and len(parts) > 1 else parts[0]
+
+
 def imported_roots(package: str) -> dict[str, set[str]]:
     found = {}
     for path in (ROOT / package).rglob("*.py"):
         roots = set()
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
-                roots |= {alias.name.split(".")[0] for alias in node.names}
+                roots |= {root_of(alias.name) for alias in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0:
-                roots.add(node.module.split(".")[0])
+                roots.add(root_of(node.module))
         found[str(path.relative_to(ROOT))] = roots
     return found
+
+
+def test_our_modules_import_each_other_under_the_installed_name():
+    """Inside the repository `services`, `protocol` and `tpdeb_core` are also importable as
+    top-level names; importing them so would load a second copy of every module."""
+    bare = {}
+    for package in ("tpdeb_core", "protocol", "services", "bench", "tests"):
+        for path in imported_roots(package):
+            text = (ROOT / path).read_text()
+            found = [line for line in text.splitlines() if line.lstrip().startswith(
+                ("from services", "from protocol", "from tpdeb_core", "import services",
+                 "import protocol", "import tpdeb_core"))]
+            if found:
+                bare[path] = found
+    assert not bare, bare
 
 
 def test_core_imports_only_torch_numpy_and_pure_stdlib():
@@ -44,6 +65,27 @@ def test_protocol_imports_only_numpy_msgpack_zstandard_and_pure_stdlib():
     bad = {m: sorted(r - PROTOCOL_ALLOWED) for m, r in imported_roots("protocol").items()
            if r - PROTOCOL_ALLOWED}
     assert not bad, bad
+
+
+def test_the_wheel_installs_one_top_level_name(tmp_path):
+    """`services` and `protocol` are names any project may use: the wheel puts everything under
+    `tpdeb` (with the cluster file and the presets), nothing beside it."""
+    import subprocess
+    import sys
+    import zipfile
+
+    out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps",
+                          "--no-build-isolation", "-q", "-w", str(tmp_path), str(ROOT)],
+                         capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    (wheel,) = tmp_path.glob("tpdeb-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {name.split("/")[0] for name in names}
+    assert tops == {"tpdeb", wheel.name.split("-py")[0] + ".dist-info"}, tops
+    for needed in ("tpdeb/services/learner.py", "tpdeb/protocol/codec.py",
+                   "tpdeb/tpdeb_core/learner.py", "tpdeb/deploy/local.toml",
+                   "tpdeb/deploy/presets/HalfCheetah-v5.toml"):
+        assert needed in names, needed
 
 
 def test_layout_directories_exist():
@@ -80,6 +122,6 @@ def test_only_the_training_and_evaluating_entry_points_import_torch():
 
 
 def test_router_config_validates_without_torch():
-    code = ("import sys, services.router; services.router.RouterConfig(); "
+    code = ("import sys, tpdeb.services.router; tpdeb.services.router.RouterConfig(); "
             "print('torch' in sys.modules)")
     assert python_c(code).stdout.strip() == "False"

@@ -7,10 +7,10 @@ import torch
 from torch.distributions import Independent, Normal, kl_divergence
 
 from tests.fakes import ScriptedVectorEnv
-from tpdeb_core.fragments import Collector, stack_fragments
-from tpdeb_core.learner import Learner, LossConfig
-from tpdeb_core.model import ActorCritic
-from tpdeb_core.vtrace import vtrace_terms
+from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
+from tpdeb.tpdeb_core.learner import Learner, LossConfig
+from tpdeb.tpdeb_core.model import ActorCritic
+from tpdeb.tpdeb_core.vtrace import vtrace_terms
 
 
 def impact_surrogate(logp, behaviour_logp, target_logp, advantages, clip_coef, rho_target_bar):

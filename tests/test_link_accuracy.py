@@ -46,7 +46,7 @@ class LinkNamespaces(Namespaces):
         link = None
         if via_link:
             listen = self.port()
-            link = self.spawn(self.a, "link", "-m", "services.link",
+            link = self.spawn(self.a, "link", "-m", "tpdeb.services.link",
                               "--listen", f"tcp/{self.addr_a}:{listen}",
                               "--connect", f"tcp/{self.addr_b}:{port}",
                               "--up-bytes-per-s", str(rate), "--publish-stats", "false")

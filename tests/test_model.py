@@ -3,15 +3,15 @@ import pytest
 import torch
 from torch.distributions import Independent, Normal
 
-from services.wire import check_params
-from tpdeb_core.learner import log_prob
-from tpdeb_core.model import (
+from tpdeb.services.wire import check_params
+from tpdeb.tpdeb_core.learner import log_prob
+from tpdeb.tpdeb_core.model import (
     ActorCritic,
     RunningMeanStd,
     gaussian_log_prob,
 )
-from tpdeb_core.moments import batch_moments
-from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
+from tpdeb.tpdeb_core.moments import batch_moments
+from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 
 def normal(mean, log_std):
@@ -118,6 +118,6 @@ def test_param_shapes_are_the_torch_models_state(hidden):
 
 
 def model_params(model):
-    from protocol import Params
+    from tpdeb.protocol import Params
 
     return Params(version=0, arrays=model.arrays())

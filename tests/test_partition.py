@@ -128,11 +128,12 @@ def test_training_recovers_from_a_network_partition(spaces, tmp_path, cut):
     common = ["--run-id", RUN_ID, "--env-id", ENV, "--num-envs", "2", "--seed", "1",
               "--total-timesteps", str(TOTAL_STEPS), "--fragment-len", str(FRAGMENT_STEPS),
               "--run-dir", str(tmp_path / "run")]
-    replay = spaces.spawn(core, "replay", "-m", "services.replay", *common, "--listen", endpoint)
-    learner = spaces.spawn(core, "learner", "-m", "services.learner", *common,
+    replay = spaces.spawn(core, "replay", "-m", "tpdeb.services.replay", *common,
+                          "--listen", endpoint)
+    learner = spaces.spawn(core, "learner", "-m", "tpdeb.services.learner", *common,
                            "--connect", endpoint)
-    actor = spaces.spawn(edge, "actor", "-m", "services.actor", *common, "--connect", endpoint,
-                         "--actor-id", "0")
+    actor = spaces.spawn(edge, "actor", "-m", "tpdeb.services.actor", *common,
+                         "--connect", endpoint, "--actor-id", "0")
     watcher = spaces.spawn(core, "watch", WATCH, endpoint, RUN_ID)
     procs = {"replay": replay, "learner": learner, "actor": actor, "watch": watcher}
     watch = Watch(spaces, watcher)

@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pytest
 
-from services.persistence import (
+from tpdeb.services.persistence import (
     MARKER,
     STATE_FILE,
     CorruptRecord,
@@ -230,8 +230,8 @@ def _saved_state() -> dict:
     (lambda s: s["ledgers"][0].update(windows={5: [1, 3]}), "is not \\[low, \\[seq"),
 ])
 def test_a_saved_replay_state_is_checked_field_by_field(damage, match):
-    from services.config import ConfigError
-    from services.replay import _check_saved
+    from tpdeb.services.config import ConfigError
+    from tpdeb.services.replay import _check_saved
 
     _check_saved(_saved_state())
     state = _saved_state()

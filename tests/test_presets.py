@@ -9,10 +9,10 @@ from pathlib import Path
 
 import pytest
 
-from services.config import ConfigError, resolve
-from services.presets import ALGORITHMS, PRESETS_DIR, RUN_IDENTITY, load_preset
-from services.service_config import ActorServiceConfig, LearnerServiceConfig
-from services.train_config import TrainConfig
+from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.presets import ALGORITHMS, PRESETS_DIR, RUN_IDENTITY, load_preset
+from tpdeb.services.service_config import ActorServiceConfig, LearnerServiceConfig
+from tpdeb.services.train_config import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
@@ -134,8 +134,8 @@ def test_every_algorithm_runs_through_every_service_config():
 
 
 def test_tpdeb_train_announces_the_preset(tmp_path):
-    cmd = [sys.executable, "-m", "services.serial", "--env-id", "Hopper-v5", "--total-timesteps",
-           "64", "--num-envs", "1", "--run-dir", str(tmp_path / "run")]
+    cmd = [sys.executable, "-m", "tpdeb.services.serial", "--env-id", "Hopper-v5",
+           "--total-timesteps", "64", "--num-envs", "1", "--run-dir", str(tmp_path / "run")]
     out = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert "preset: deploy/presets/Hopper-v5.toml" in out.stdout
@@ -144,7 +144,7 @@ def test_tpdeb_train_announces_the_preset(tmp_path):
 
 
 def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
-    from services.cluster import make_plan, parse_args
+    from tpdeb.services.cluster import make_plan, parse_args
 
     def plan(*flags):
         return make_plan(parse_args([*flags, "--run-dir", str(tmp_path / "run")])).train

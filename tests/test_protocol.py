@@ -1,4 +1,4 @@
-"""protocol: round-trips of every message, key expressions, and hostile inputs (SPEC §3)."""
+"""protocol: round-trips of every message, key expressions, and hostile inputs (DESIGN §3)."""
 
 import dataclasses
 import os
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from protocol import (
+from tpdeb.protocol import (
     ERROR_KINDS,
     MESSAGE_TYPES,
     SCHEMA_VERSION,
@@ -31,11 +31,11 @@ from protocol import (
     decode,
     encode,
 )
-from services.wire import batch_message
-from tpdeb_core.fragments import stack_fragments
+from tpdeb.services.wire import batch_message
+from tpdeb.tpdeb_core.fragments import stack_fragments
 
 T, OBS_DIM, ACT_DIM = 4, 3, 2
-SPEC = RunSpec("Hopper-v5", OBS_DIM, ACT_DIM, T, [64, 64], 0.99, 10.0, 0.0, "trajectory", 0.0,
+RUN_SPEC = RunSpec("Hopper-v5", OBS_DIM, ACT_DIM, T, [64, 64], 0.99, 10.0, 0.0, "trajectory", 0.0,
                np.full(ACT_DIM, -1, np.float32), np.ones(ACT_DIM, np.float32))
 ALL_TYPES = tuple(MESSAGE_TYPES.values())
 FUZZ_EXAMPLES = int(os.environ.get("TPDEB_FUZZ_EXAMPLES", "300"))
@@ -87,7 +87,7 @@ def make_reply() -> SampleReply:
 
 
 MESSAGES = {
-    "RunSpec": SPEC,
+    "RunSpec": RUN_SPEC,
     "Trajectory": make_traj(),
     "Ack": Ack(3, np.array([0, 1, 2], np.int64), 17),
     "Params": Params(4, {"pi.weight": np.ones((2, 3), np.float32), "log_std": np.zeros(2),
@@ -140,20 +140,20 @@ def arrays_of(msg):
 @pytest.mark.parametrize("name", MESSAGES)
 def test_round_trip_every_message(name):
     msg = MESSAGES[name]
-    out = decode(encode(msg), type(msg), spec=SPEC)
+    out = decode(encode(msg), type(msg), spec=RUN_SPEC)
     assert_same(msg, out)
     for arr in arrays_of(out):  # views over the unpacked bytes: no copy, read-only
         assert arr.base is not None and not arr.flags.writeable
 
 
 def test_round_trip_details():
-    reply = decode(encode(MESSAGES["SampleReply"]), SampleReply, spec=SPEC)
+    reply = decode(encode(MESSAGES["SampleReply"]), SampleReply, spec=RUN_SPEC)
     assert reply.batch.rewards.shape == (T, 2) and reply.ret_moments.mean.shape == ()
     params = decode(encode(MESSAGES["Params"]), Params)
     assert params.arrays["norm.count"].shape == () and params.arrays["norm.count"] == 5
     step = decode(encode(MESSAGES["PriorityUpdate.step"]), PriorityUpdate)
     assert step.priorities.shape == (2, T)
-    assert decode(encode(SPEC), RunSpec).hidden_sizes == [64, 64]
+    assert decode(encode(RUN_SPEC), RunSpec).hidden_sizes == [64, 64]
     assert isinstance(decode(encode(Control("stop")), (Ack, Control)), Control)
 
 
@@ -270,7 +270,7 @@ BAD_INPUTS = [  # (kind, bytes, expected types, decode keyword arguments)
     ("msgpack", b"\xc7\x01\x05x", Trajectory, {}),  # an ext type
     ("version", tampered(TRAJ, top={"v": 99}), Trajectory, {}),
     ("version", tampered(TRAJ, top={"v": True}), Trajectory, {}),
-    ("version", tampered(SPEC, schema_version=99), RunSpec, {}),
+    ("version", tampered(RUN_SPEC, schema_version=99), RunSpec, {}),
     ("type", tampered(TRAJ, top={"type": "Nope"}), Trajectory, {}),
     ("type", encode(Control("stop")), (Trajectory, Ack), {}),
     ("field", without("seq"), Trajectory, {}),
@@ -283,14 +283,14 @@ BAD_INPUTS = [  # (kind, bytes, expected types, decode keyword arguments)
     ("dtype", tampered(TRAJ, rewards=nd("<f8", [T], R.astype("<f8").tobytes())), Trajectory, {}),
     ("dtype", tampered(TRAJ, rewards=nd("<f2", [T], R.astype("<f2").tobytes())), Trajectory, {}),
     ("dtype", tampered(TRAJ, rewards=nd(">f4", [T], R.astype(">f4").tobytes())), Trajectory, {}),
-    ("shape", encode(make_traj(obs_dim=OBS_DIM + 1)), Trajectory, {"spec": SPEC}),
-    ("shape", encode(make_traj(steps=T + 1)), Trajectory, {"spec": SPEC}),
+    ("shape", encode(make_traj(obs_dim=OBS_DIM + 1)), Trajectory, {"spec": RUN_SPEC}),
+    ("shape", encode(make_traj(steps=T + 1)), Trajectory, {"spec": RUN_SPEC}),
     ("shape", tampered(TRAJ, rewards=nd("<f4", [T - 1], R[:-1].tobytes())), Trajectory, {}),
     ("shape", tampered(TRAJ, rewards=nd("<f4", [T * 1000], R.tobytes())), Trajectory, {}),
     ("shape", tampered(TRAJ, rewards=nd("<f4", [-1], b"")), Trajectory, {}),
     ("shape", tampered(TRAJ, rewards=nd("<f4", [T, 1], R.tobytes())), Trajectory, {}),
     ("shape", tampered(MESSAGES["PriorityUpdate.step"]), PriorityUpdate,
-     {"spec": dataclasses.replace(SPEC, fragment_len=T + 1)}),
+     {"spec": dataclasses.replace(RUN_SPEC, fragment_len=T + 1)}),
     ("nonfinite", encode(dataclasses.replace(TRAJ, rewards=np.array([0, np.nan, 0, 0],
                                                                     np.float32))), Trajectory, {}),
     ("nonfinite", tampered(TRAJ, reward_scale=float("inf")), Trajectory, {}),
@@ -325,7 +325,7 @@ def test_error_messages_name_what_went_wrong():
         decode(tampered(TRAJ, top={"v": 7}), Trajectory)
     assert "7" in err.value.detail and str(SCHEMA_VERSION) in err.value.detail
     with pytest.raises(DecodeError, match="obs_dim=4, but obs_dim=3 from the run spec"):
-        decode(encode(make_traj(obs_dim=OBS_DIM + 1)), Trajectory, spec=SPEC)
+        decode(encode(make_traj(obs_dim=OBS_DIM + 1)), Trajectory, spec=RUN_SPEC)
     with pytest.raises(DecodeError, match=r"SampleReply\.batch\.rewards"):
         bad = dataclasses.replace(make_traj(2), rewards=np.full(T, np.inf, np.float32))
         decode(encode(dataclasses.replace(make_reply(), batch=make_batch(make_traj(1), bad))),
@@ -346,7 +346,7 @@ def test_a_batch_must_fit_its_reply_and_name_real_truncations():
         with pytest.raises(DecodeError) as err:
             decode(encode(dataclasses.replace(batch, **{field_name: value})), Batch)
         assert err.value.kind == "value"
-    assert decode(encode(batch), Batch, spec=SPEC).obs.shape == (T + 1, 2, OBS_DIM)
+    assert decode(encode(batch), Batch, spec=RUN_SPEC).obs.shape == (T + 1, 2, OBS_DIM)
 
 
 # ------------------------------------------------------------------------------- fuzzing
@@ -386,10 +386,10 @@ def test_mutated_trajectory_is_refused_or_valid(changes, with_spec):
             data.insert(pos, byte)
         elif data:
             del data[pos]
-    out = decode_or_error(bytes(data), Trajectory, SPEC if with_spec else None)
+    out = decode_or_error(bytes(data), Trajectory, RUN_SPEC if with_spec else None)
     if not isinstance(out, DecodeError):  # whatever got through is whole and valid
         assert isinstance(out, Trajectory)
-        assert_same(out, decode(encode(out), Trajectory, spec=SPEC if with_spec else None))
+        assert_same(out, decode(encode(out), Trajectory, spec=RUN_SPEC if with_spec else None))
 
 
 leaves = (st.none() | st.booleans() | st.integers(-(2**63), 2**64 - 1) | st.floats()
@@ -422,9 +422,9 @@ def test_arbitrary_body_in_a_valid_envelope_is_refused(type_name, body):
 def test_arbitrary_field_value_is_refused_or_valid(name, data):
     msg = MESSAGES[name]
     field = data.draw(st.sampled_from([f.name for f in dataclasses.fields(msg)]))
-    out = decode_or_error(tampered(msg, **{field: data.draw(trees)}), type(msg), SPEC)
+    out = decode_or_error(tampered(msg, **{field: data.draw(trees)}), type(msg), RUN_SPEC)
     if not isinstance(out, DecodeError):
-        assert_same(out, decode(encode(out), type(msg), spec=SPEC))
+        assert_same(out, decode(encode(out), type(msg), spec=RUN_SPEC))
 
 
 def test_compressed_messages_round_trip_and_are_smaller():

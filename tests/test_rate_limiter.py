@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tpdeb_core.rate_limiter import RateLimiter
+from tpdeb.tpdeb_core.rate_limiter import RateLimiter
 
 
 def make(spi=4.0, min_size=256, error_buffer=None, insert_steps=64, sample_steps=512, **kw):
@@ -80,7 +80,7 @@ def test_requests_larger_than_declared_are_refused():
 @pytest.mark.parametrize(
     ("spi", "insert_steps", "sample_steps", "min_size"),
     [
-        (16.0, 64, 512, 512),  # SPEC's starting point: 8 fragments of 64, replay ratio 16
+        (16.0, 64, 512, 512),  # the defaults: 8 fragments of 64, replay ratio 16
         (4.0, 64, 512, 256),
         (0.25, 64, 8, 64),  # more inserted than sampled
         (0.1, 7, 3, 10),  # a ratio that is not a binary fraction

@@ -6,8 +6,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import stats as scipy_stats
 
-from tpdeb_core.replay import DualReplay
-from tpdeb_core.sumtree import MinTree, SumTree
+from tpdeb.tpdeb_core.replay import DualReplay
+from tpdeb.tpdeb_core.sumtree import MinTree, SumTree
 
 MIN_PRIORITY = 1e-6
 # A p-value this small happens by chance once in 10^4 runs; every seed below is fixed anyway.

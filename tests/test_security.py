@@ -16,14 +16,15 @@ import pytest
 import zenoh
 from cryptography import x509
 
-from protocol import Keys
-from services import certs as certs_cli
-from services.cluster import make_plan, parse_args
-from services.config import ConfigError, resolve, to_toml
-from services.link import LinkConfig
-from services.metrics import read_metrics
-from services.router import RouterConfig
-from services.security import (
+from tests.procs import ROOT, free_port, pids_with
+from tpdeb.protocol import Keys
+from tpdeb.services import certs as certs_cli
+from tpdeb.services.cluster import make_plan, parse_args
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.link import LinkConfig
+from tpdeb.services.metrics import read_metrics
+from tpdeb.services.router import RouterConfig
+from tpdeb.services.security import (
     Security,
     access_control,
     new_passwords,
@@ -31,9 +32,8 @@ from services.security import (
     security_of,
     write_auth_file,
 )
-from services.service_config import ActorServiceConfig, ServiceConfig
-from services.zsession import open_for, open_session, zenoh_config
-from tests.procs import ROOT, free_port, pids_with
+from tpdeb.services.service_config import ActorServiceConfig, ServiceConfig
+from tpdeb.services.zsession import open_for, open_session, zenoh_config
 
 ENV = "InvertedPendulum-v5"
 ROLES = ["replay", "learner", "actor-0", "actor-1", "monitor", "link"]

@@ -9,14 +9,14 @@ from pathlib import Path
 import pytest
 import torch
 
-from services.metrics import read_metrics
-from services.serial import main
+from tpdeb.services.metrics import read_metrics
+from tpdeb.services.serial import main
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def train(run_dir: Path, *flags: str, timeout_s: float = 600) -> subprocess.CompletedProcess:
-    cmd = [sys.executable, "-m", "services.serial", "--run-dir", str(run_dir), *flags]
+    cmd = [sys.executable, "-m", "tpdeb.services.serial", "--run-dir", str(run_dir), *flags]
     # subprocess.run kills the child if the timeout expires, so nothing is left behind
     return subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=timeout_s)
 

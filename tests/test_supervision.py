@@ -13,7 +13,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from services.cluster import (
+from tests.procs import pids_with
+from tpdeb.services.cluster import (
     MAX_BACKOFF_S,
     Child,
     Cluster,
@@ -28,8 +29,7 @@ from services.cluster import (
     parse_args,
     stats_interval_s,
 )
-from services.config import ConfigError
-from tests.procs import pids_with
+from tpdeb.services.config import ConfigError
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "InvertedPendulum-v5"

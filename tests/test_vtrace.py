@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from tpdeb_core.vtrace import discounted_sums, vtrace, vtrace_terms
+from tpdeb.tpdeb_core.vtrace import discounted_sums, vtrace, vtrace_terms
 
 
 def reference_vtrace(b_logp, t_logp, rewards, values, bootstrap, discounts, rho_bar, c_bar,

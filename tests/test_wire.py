@@ -4,13 +4,13 @@ parameters and an actor acts on them within float16's precision."""
 import numpy as np
 import torch
 
-from protocol import Params, Trajectory, decode, encode
-from services.model_wire import params_message
-from services.wire import check_params, fragment_to_message, message_to_fragment
 from tests.fakes import ScriptedVectorEnv
-from tpdeb_core.fragments import Collector
-from tpdeb_core.model import ActorCritic
-from tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
+from tpdeb.protocol import Params, Trajectory, decode, encode
+from tpdeb.services.model_wire import params_message
+from tpdeb.services.wire import check_params, fragment_to_message, message_to_fragment
+from tpdeb.tpdeb_core.fragments import Collector
+from tpdeb.tpdeb_core.model import ActorCritic
+from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
 
 def test_fragment_round_trip_through_the_codec_compressed_or_not():

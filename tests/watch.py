@@ -17,8 +17,8 @@ import time
 
 import zenoh
 
-from protocol import DecodeError, Keys, Stats, decode
-from services.zsession import StopSignal, open_session
+from tpdeb.protocol import DecodeError, Keys, Stats, decode
+from tpdeb.services.zsession import StopSignal, open_session
 
 lock = threading.Lock()
 

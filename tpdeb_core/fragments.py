@@ -1,4 +1,4 @@
-"""Fragments: T-step slices of one env's stream, built from a gymnasium vector env (SPEC §2).
+"""Fragments: T-step slices of one env's stream, built from a gymnasium vector env (DESIGN §2).
 
 A fragment holds obs[T+1] (the last one is the bootstrap observation), raw actions[T],
 rewards[T] (raw, scaled at learn time), terminated/truncated[T], the behaviour policy's
@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from tpdeb_core.numpy_policy import NumpyPolicy
-from tpdeb_core.replay import PRIORITY_MODES
+from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy
+from tpdeb.tpdeb_core.replay import PRIORITY_MODES
 
 
 @dataclass
@@ -110,7 +110,7 @@ def fragment_priority(
     rewards_scaled: np.ndarray | None = None,
     discounts: np.ndarray | None = None,
 ):
-    """Replay priority of a fragment from its per-step |δ_t| (SPEC §2, "Initial priority").
+    """Replay priority of a fragment from its per-step |δ_t| (DESIGN §2, "Initial priority").
 
     trajectory: Δτ + κ·|Ĝ| with Δτ = Σ_t |δ_t| and Ĝ the fragment's mean scaled return;
     step: the per-step array |δ_t| (+ κ·|G_t|); none: 1.0 (ignored by the replay).

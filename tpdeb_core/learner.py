@@ -1,5 +1,5 @@
 """The TPDEB learner: IMPACT surrogate on V-trace advantages, KL to the behaviour policy, soft
-target policy, prioritized-sample weights and new priorities (SPEC §2, "Learner loss").
+target policy, prioritized-sample weights and new priorities (DESIGN §2, "Learner loss").
 
 Pure: a `Learner` takes fragments and replay weights and returns metrics and new priorities.
 Where the fragments come from and where parameters go is the caller's business.
@@ -14,13 +14,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from tpdeb_core.adam import Adam
-from tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
-from tpdeb_core.loss_config import LossConfig
-from tpdeb_core.model import ActorCritic
-from tpdeb_core.moments import inverse_std
-from tpdeb_core.numpy_policy import LOG_2PI
-from tpdeb_core.vtrace import vtrace_arrays
+from tpdeb.tpdeb_core.adam import Adam
+from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
+from tpdeb.tpdeb_core.loss_config import LossConfig
+from tpdeb.tpdeb_core.model import ActorCritic
+from tpdeb.tpdeb_core.moments import inverse_std
+from tpdeb.tpdeb_core.numpy_policy import LOG_2PI
+from tpdeb.tpdeb_core.vtrace import vtrace_arrays
 
 
 @dataclass

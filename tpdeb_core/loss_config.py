@@ -1,11 +1,11 @@
-"""The learner's loss settings (SPEC §2, "Learner loss"), apart from the learner itself so that
+"""The learner's loss settings (DESIGN §2, "Learner loss"), apart from the learner itself so that
 processes that only read a run's configuration (router, link, launcher) need no torch."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-from tpdeb_core.replay import PRIORITY_MODES
+from tpdeb.tpdeb_core.replay import PRIORITY_MODES
 
 CLIP_ANCHORS = ("target", "behaviour")
 

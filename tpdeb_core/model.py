@@ -1,4 +1,4 @@
-"""Networks, diagonal-Gaussian helpers and the running normalisers (SPEC §2 "Policy").
+"""Networks, diagonal-Gaussian helpers and the running normalisers (DESIGN §2 "Policy").
 
 The normaliser state lives inside the model (as buffers), so it travels with the parameters to
 the actors and is saved in every checkpoint: a policy evaluated without its normaliser is a
@@ -14,8 +14,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from tpdeb_core.moments import NORM_EPSILON, batch_moments, inverse_std, merge_moments
-from tpdeb_core.numpy_policy import LOG_2PI, NumpyPolicy
+from tpdeb.tpdeb_core.moments import NORM_EPSILON, batch_moments, inverse_std, merge_moments
+from tpdeb.tpdeb_core.numpy_policy import LOG_2PI, NumpyPolicy
 
 # --- diagonal Gaussian ---------------------------------------------------------------------------
 
@@ -96,7 +96,7 @@ def mlp(sizes: Sequence[int], out_gain: float) -> nn.Sequential:
 
 
 class GaussianPolicy(nn.Module):
-    """Mean from an MLP, state-independent learned log-std (SPEC §2)."""
+    """Mean from an MLP, state-independent learned log-std (DESIGN §2)."""
 
     def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], init_log_std: float):
         super().__init__()

@@ -14,7 +14,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from tpdeb_core.moments import inverse_std
+from tpdeb.tpdeb_core.moments import inverse_std
 
 LOG_2PI = math.log(2.0 * math.pi)
 MEAN_NET, VALUE_NET = "policy.mean", "value_net"

@@ -1,4 +1,4 @@
-"""Dual replay (SPEC §2): a prioritized buffer B_p beside a FIFO uniform buffer B_u.
+"""Dual replay (DESIGN §2): a prioritized buffer B_p beside a FIFO uniform buffer B_u.
 
 B_p keeps the `prioritized_capacity` fragments with the highest priority seen so far (a newcomer
 enters only by beating the current lowest, which then moves to B_u); B_u keeps the most recent
@@ -38,7 +38,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from tpdeb_core.sumtree import MinTree, SumTree
+from tpdeb.tpdeb_core.sumtree import MinTree, SumTree
 
 PRIORITY_MODES = ("trajectory", "step", "none")
 RETENTIONS = ("priority", "fifo")
