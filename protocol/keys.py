@@ -1,4 +1,5 @@
-"""Every Zenoh key expression of one run (DESIGN §3), built here and nowhere else."""
+"""Every Zenoh key expression of one run (DESIGN §3), built here and nowhere else; who puts,
+asks and hears each is declared in `tpdeb.protocol.topics`."""
 
 from __future__ import annotations
 
@@ -40,14 +41,14 @@ class Keys:
                              "(letters, digits, '_', '.', '-'; 1 to 64 characters)")
         self.run_id = run_id
         self.prefix = p = f"tpdeb/{run_id}"
-        self.traj_all = f"{p}/traj/*"  # actor → replay, put
-        self.ack_all = f"{p}/ack/*"  # replay → actor, put
-        self.params = f"{p}/params"  # learner → actors, put, latest wins
-        self.params_latest = f"{p}/params/latest"  # learner's queryable for newcomers
-        self.sample = f"{p}/sample"  # learner → replay, query
-        self.priorities = f"{p}/priorities"  # learner → replay, put
-        self.spec = f"{p}/spec"  # replay's queryable
-        self.control = f"{p}/control"  # stop broadcast
+        self.traj_all = f"{p}/traj/*"
+        self.ack_all = f"{p}/ack/*"
+        self.params = f"{p}/params"
+        self.params_latest = f"{p}/params/latest"
+        self.sample = f"{p}/sample"
+        self.priorities = f"{p}/priorities"
+        self.spec = f"{p}/spec"
+        self.control = f"{p}/control"
         self.stats_all = f"{p}/stats/**"
         self.alive_all = f"{p}/alive/**"
 

@@ -41,6 +41,7 @@ from tpdeb.services.zsession import (
     RateLimitedLog,
     StopSignal,
     close_session,
+    declare_publisher,
     fail,
     fetch_spec,
     open_for,
@@ -115,9 +116,8 @@ class ActorService:
         s, k = session, self.keys
         # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
         # outbox bounds how much can wait; wait_before_close is set far above that).
-        self.traj_publisher = s.declare_publisher(
-            k.traj(config.actor_id), congestion_control=zenoh.CongestionControl.BLOCK)
-        self.stats_publisher = s.declare_publisher(k.stats("actor", config.actor_id))
+        self.traj_publisher = declare_publisher(s, "traj", k.traj(config.actor_id))
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("actor", config.actor_id))
         self.subscribers = [
             s.declare_subscriber(k.ack(config.actor_id), self._on_ack),
             s.declare_subscriber(k.control, self._on_control),

@@ -66,6 +66,7 @@ from tpdeb.services.zsession import (
     RateLimitedLog,
     StopSignal,
     close_session,
+    declare_publisher,
     fail,
     fetch_spec,
     open_for,
@@ -130,14 +131,10 @@ class LearnerService:
         s, k = session, self.keys
         # Monitors may subscribe; actors pull through params/latest instead (see
         # _answer_latest). Latest wins, so a congested link may drop one.
-        self.params_publisher = s.declare_publisher(
-            k.params, congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.DATA_LOW)
-        self.priorities_publisher = s.declare_publisher(k.priorities)
-        self.control_publisher = s.declare_publisher(
-            k.control, congestion_control=zenoh.CongestionControl.BLOCK,
-            priority=zenoh.Priority.INTERACTIVE_HIGH)
-        self.stats_publisher = s.declare_publisher(k.stats("learner", 0))
+        self.params_publisher = declare_publisher(s, "params", k.params)
+        self.priorities_publisher = declare_publisher(s, "priorities", k.priorities)
+        self.control_publisher = declare_publisher(s, "control", k.control)
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("learner", 0))
         self.latest_queryable = s.declare_queryable(k.params_latest, self._answer_latest)
         self.stats_subscriber = s.declare_subscriber(k.stats_all, self.stats_inbox.put)
         self.token = s.liveliness().declare_token(k.alive("learner", 0))

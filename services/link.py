@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError, resolve
 from tpdeb.services.security import Security, check_settings
-from tpdeb.services.zsession import check_endpoints, fail, say
+from tpdeb.services.zsession import check_endpoints, declare_publisher, fail, say
 
 PROG = "tpdeb-link"
 UNLIMITED_CHUNK = 64 * 1024
@@ -275,7 +275,7 @@ def stats_reporter(config: LinkConfig):
 
     session = open_session("client", [], [config.connect], 60.0, security=Security(
         tls_ca=config.tls_ca, user=config.user, password=config.password))
-    publisher = session.declare_publisher(Keys(config.run_id).stats("link", 0))
+    publisher = declare_publisher(session, "stats", Keys(config.run_id).stats("link", 0))
 
     def report(values: dict) -> None:
         publisher.put(encode(Stats(role="link", ident="0", values=values,

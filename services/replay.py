@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import zenoh
 
 from tpdeb.protocol import (
     Ack,
@@ -41,7 +40,15 @@ from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.persistence import ReplayPersistence
 from tpdeb.services.service_config import ReplayServiceConfig
 from tpdeb.services.wire import batch_message, finite_values, message_to_fragment, run_spec
-from tpdeb.services.zsession import RateLimitedLog, StopSignal, close_session, fail, open_for, say
+from tpdeb.services.zsession import (
+    RateLimitedLog,
+    StopSignal,
+    close_session,
+    declare_publisher,
+    fail,
+    open_for,
+    say,
+)
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
 
@@ -175,7 +182,7 @@ class ReplayServer:
             s.declare_queryable(k.spec, self._answer_spec),
         ]
         self.ack_publishers: dict[int, object] = {}
-        self.stats_publisher = s.declare_publisher(k.stats("replay", 0))
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("replay", 0))
         self.token = s.liveliness().declare_token(k.alive("replay", 0))
 
     def _answer_spec(self, query) -> None:
@@ -280,9 +287,7 @@ class ReplayServer:
                 continue
             publisher = self.ack_publishers.get(actor_id)
             if publisher is None:
-                # Acks are small and unblock actors: ahead of bulk data on a shared link.
-                publisher = self.session.declare_publisher(
-                    self.keys.ack(actor_id), priority=zenoh.Priority.DATA_HIGH, express=True)
+                publisher = declare_publisher(self.session, "ack", self.keys.ack(actor_id))
                 self.ack_publishers[actor_id] = publisher
             for incarnation, seqs in ledger.unacked.items():
                 publisher.put(encode(Ack(actor_id=actor_id, seqs=np.array(seqs, np.int64),

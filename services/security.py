@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from tpdeb.protocol import Keys
+from tpdeb.protocol.topics import grants
 from tpdeb.services.config import ConfigError
 
 
@@ -48,72 +49,16 @@ _USER_TEXT = re.compile(r"[A-Za-z0-9_.@-]{1,128}")
 
 
 def _grants(keys: Keys, role: str) -> list[tuple[str, str, str]]:
-    """(message, flow, key expression) triples of one role: what it may send into the router
-    (ingress) and what the router may hand it (egress)."""
-    grants: list[tuple[str, str, str]] = []
-
-    def publish(key: str, *heard_by: str) -> None:
-        grants.append(("put", "ingress", key))
-        # A publisher sends only while it knows of a matching subscriber: the router must pass
-        # it the subscriptions that hear it (`heard_by`: those not already inside `key`).
-        grants.extend(("declare_subscriber", "egress", k) for k in (key, *heard_by))
-
-    def subscribe(*keyexprs: str) -> None:
-        grants.extend(("declare_subscriber", "ingress", k) for k in keyexprs)
-        grants.extend(("put", "egress", k) for k in keyexprs)
-
-    def query(*keyexprs: str) -> None:
-        grants.extend(("query", "ingress", k) for k in keyexprs)
-        grants.extend(("reply", "egress", k) for k in keyexprs)
-        grants.extend(("declare_queryable", "egress", k) for k in keyexprs)  # who answers
-
-    def answer(*keyexprs: str) -> None:
-        grants.extend(("declare_queryable", "ingress", k) for k in keyexprs)
-        grants.extend(("query", "egress", k) for k in keyexprs)
-        grants.extend(("reply", "ingress", k) for k in keyexprs)
-
-    def token(key: str) -> None:
-        grants.append(("liveliness_token", "ingress", key))
-
-    def watch_alive(keyexpr: str) -> None:
-        grants.append(("declare_liveliness_subscriber", "ingress", keyexpr))
-        grants.append(("liveliness_token", "egress", keyexpr))
-        grants.append(("liveliness_query", "ingress", keyexpr))  # history of live tokens
-        grants.append(("reply", "egress", keyexpr))
-
+    """(message, flow, key expression) triples of one user role, derived from the topic table
+    (`tpdeb.protocol.topics`): what it may send into the router (ingress) and what the router
+    may hand it (egress)."""
     actor = _ACTOR.fullmatch(role)
-    if role == "replay":
-        subscribe(keys.traj_all, keys.priorities, keys.control)
-        publish(keys.ack_all)
-        publish(keys.stats("replay", 0), keys.stats_all)
-        answer(keys.sample, keys.spec)
-        token(keys.alive("replay", 0))
-    elif role == "learner":
-        for key in (keys.params, keys.priorities, keys.control):
-            publish(key)
-        publish(keys.stats("learner", 0), keys.stats_all)
-        query(keys.sample, keys.spec)
-        answer(keys.params_latest)
-        subscribe(keys.stats_all)
-        token(keys.alive("learner", 0))
-    elif actor:
-        i = int(actor.group(1))
-        publish(keys.traj(i), keys.traj_all)
-        publish(keys.stats("actor", i), keys.stats_all)
-        subscribe(keys.ack(i), keys.control)
-        query(keys.spec, keys.params_latest)
-        token(keys.alive("actor", i))
-        watch_alive(keys.alive("replay", 0))  # a replay (re)appearing: resend unacked
-    elif role == "monitor":
-        subscribe(keys.stats_all, keys.control)
-        watch_alive(keys.alive_all)
-        query(keys.spec, keys.params_latest)
-    elif role == "link":
-        publish(keys.stats("link", 0), keys.stats_all)
-    else:
-        raise ConfigError(f"user {role!r} is not a TPDEB role: users are {', '.join(ROLES)} "
-                          "(or ROLE@RUN_ID for another run on this router)")
-    return grants
+    if actor:
+        return grants(keys, "actor", int(actor.group(1)))
+    if role in ("replay", "learner", "monitor", "link"):
+        return grants(keys, role, 0)
+    raise ConfigError(f"user {role!r} is not a TPDEB role: users are {', '.join(ROLES)} "
+                      "(or ROLE@RUN_ID for another run on this router)")
 
 
 def role_of(user: str, run_id: str) -> tuple[str, str]:

@@ -19,6 +19,7 @@ import time
 import zenoh
 
 from tpdeb.protocol import DecodeError, Keys, RunSpec, decode
+from tpdeb.protocol.topics import BY_NAME
 from tpdeb.services.config import ConfigError
 from tpdeb.services.security import Security, security_of
 
@@ -33,6 +34,19 @@ BLOCK_WAIT_BEFORE_CLOSE_MS = 60_000
 # may hold it 0.5 s per message).
 REFUSED_AFTER_S = 10.0
 PROBE_TIMEOUT_S = 2.0
+
+
+def qos(topic: str) -> dict:
+    """Zenoh publisher options of a topic, as the topic table declares them (DESIGN §3)."""
+    t = BY_NAME[topic]
+    return {"priority": getattr(zenoh.Priority, t.priority.upper()),
+            "congestion_control": getattr(zenoh.CongestionControl, t.congestion.upper()),
+            "express": t.express}
+
+
+def declare_publisher(session, topic: str, key: str):
+    """A publisher on `key` of `topic` with the topic's QoS."""
+    return session.declare_publisher(key, **qos(topic))
 
 
 def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeout_s: float = 60.0,

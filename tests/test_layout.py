@@ -70,12 +70,19 @@ def test_protocol_imports_only_numpy_msgpack_zstandard_and_pure_stdlib():
 def test_the_wheel_installs_one_top_level_name(tmp_path):
     """`services` and `protocol` are names any project may use: the wheel puts everything under
     `tpdeb` (with the cluster file and the presets), nothing beside it."""
+    import shutil
     import subprocess
     import sys
     import zipfile
 
+    source = tmp_path / "source"  # a copy: building leaves build/ and *.egg-info behind
+    for name in ("tpdeb_core", "protocol", "services", "deploy"):
+        shutil.copytree(ROOT / name, source / name,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    for name in ("pyproject.toml", "README.md"):
+        shutil.copy(ROOT / name, source / name)
     out = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps",
-                          "--no-build-isolation", "-q", "-w", str(tmp_path), str(ROOT)],
+                          "--no-build-isolation", "-q", "-w", str(tmp_path), str(source)],
                          capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr[-2000:]
     (wheel,) = tmp_path.glob("tpdeb-*.whl")
