@@ -51,7 +51,7 @@ def evaluate(run_dir: Path, episodes: int, seed: int) -> dict | None:
 
 def finished(run_dir: Path, steps: int) -> bool:
     """The learner reached `steps` and wrote its final checkpoint."""
-    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.store.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     return run_dir.is_dir() and any(c.tag == FINAL and c.global_step >= steps
                                     for c in list_checkpoints(checkpoint_dir(run_dir)))
@@ -59,7 +59,7 @@ def finished(run_dir: Path, steps: int) -> bool:
 
 def cluster_wall_s(run_dir: Path) -> float:
     """Seconds from the run dir's creation to its final checkpoint."""
-    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.store.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     final = [c for c in list_checkpoints(checkpoint_dir(run_dir)) if c.tag == FINAL]
     return final[-1].path.stat().st_mtime - (run_dir / "cluster.json").stat().st_mtime

@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 from tpdeb.protocol import Trajectory, decode, encode
+from tpdeb.services.config.service import ReplayServiceConfig
+from tpdeb.services.net.session import StopSignal
+from tpdeb.services.net.wire import run_spec
 from tpdeb.services.replay import ReplayServer
-from tpdeb.services.service_config import ReplayServiceConfig
-from tpdeb.services.wire import run_spec
-from tpdeb.services.zsession import StopSignal
 
 T, OBS, ACT = 64, 17, 6
 

@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from tpdeb.services.metrics import read_metrics
+from tpdeb.services.store.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -36,7 +36,6 @@ import os
 import platform
 import re
 import signal
-import socket
 import statistics
 import subprocess
 import sys
@@ -50,11 +49,12 @@ from procfs import cmdline, descendants, proc_table, rss_kib, service_name
 
 from tpdeb.protocol import DecodeError, Keys, Params, decode, encode
 from tpdeb.services.config import resolve
+from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.model_wire import model_for, params_message
-from tpdeb.services.train_config import TrainConfig
-from tpdeb.services.wire import fragment_to_message, policy_from_params, run_spec
-from tpdeb.services.zsession import open_session
+from tpdeb.services.launcher.plan import free_port
+from tpdeb.services.net.model_wire import model_for, params_message
+from tpdeb.services.net.session import open_session
+from tpdeb.services.net.wire import fragment_to_message, policy_from_params, run_spec
 from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb.tpdeb_core.learner import Learner
 
@@ -256,12 +256,6 @@ def bench_env_construction(env_id: str, num_envs: int) -> float:
 
 
 # ----------------------------------------------------------------------------- processes
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
 
 def role_of(pid: int, root: int) -> str:
     """The service a process of the measured cluster is ("cluster" for the launcher)."""

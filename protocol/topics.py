@@ -5,7 +5,7 @@ derived from it, so the three cannot disagree.
 
 Roles: `replay`, `learner`, `actor` (one per actor id), `monitor` (a watching session such as the
 launcher's), `link` (the link shim's stats). QoS is named here in words (this package does not
-import Zenoh); `tpdeb.services.zsession.qos` turns it into Zenoh's options.
+import Zenoh); `tpdeb.services.net.session.qos` turns it into Zenoh's options.
 """
 
 from __future__ import annotations

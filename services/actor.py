@@ -33,11 +33,9 @@ from tpdeb.protocol import (
     encode,
 )
 from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.config.service import ActorServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.seeding import seed_everything
-from tpdeb.services.service_config import ActorServiceConfig
-from tpdeb.services.wire import fragment_to_message, policy_from_params, spec_mismatch
-from tpdeb.services.zsession import (
+from tpdeb.services.net.session import (
     RateLimitedLog,
     StopSignal,
     close_session,
@@ -47,6 +45,8 @@ from tpdeb.services.zsession import (
     open_for,
     say,
 )
+from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
+from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
 
 PROG = "tpdeb-actor"

@@ -28,7 +28,7 @@ class EvalError(Exception):
 
 def find_checkpoint(target: Path) -> Path:
     """A checkpoint file as given, or a run dir's final checkpoint (else its newest one)."""
-    from tpdeb.services.checkpoint import FINAL, checkpoint_dir, list_checkpoints
+    from tpdeb.services.store.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
     if target.is_file():
         return target
@@ -44,7 +44,7 @@ def find_checkpoint(target: Path) -> Path:
 
 def load_policy(path: Path, env_id: str | None):
     """(model, env_id) from a checkpoint; refuses one trained on another env than `env_id`."""
-    from tpdeb.services.checkpoint import read_checkpoint
+    from tpdeb.services.store.checkpoint import read_checkpoint
     from tpdeb.tpdeb_core.model import ActorCritic
 
     try:

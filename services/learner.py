@@ -6,7 +6,7 @@ when an update ends. The loop: take a batch → merge the normaliser moments it 
 updates. Global steps are the replay's ingested env steps; at `total_timesteps` the learner
 writes its final checkpoint and tells every process of the run to stop.
 
-Checkpoints (services/checkpoint.py): every `checkpoint_interval_s` the loop writes
+Checkpoints (services/store/checkpoint.py): every `checkpoint_interval_s` the loop writes
 `checkpoints/ckpt_{updates}_{global_step}.pt` atomically and keeps the newest
 `keep_checkpoints`. `--resume auto` (the default) continues from the run dir's newest loadable
 checkpoint, so a learner restarted after a crash picks up where its last checkpoint left off.
@@ -44,7 +44,23 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.checkpoint import (
+from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config.presets import shown
+from tpdeb.services.config.service import LearnerServiceConfig
+from tpdeb.services.net.model_wire import model_for, params_message
+from tpdeb.services.net.session import (
+    RateLimitedLog,
+    StopSignal,
+    close_session,
+    declare_publisher,
+    fail,
+    fetch_spec,
+    open_for,
+    say,
+)
+from tpdeb.services.net.wire import batch_of, finite_values
+from tpdeb.services.seeding import seed_everything
+from tpdeb.services.store.checkpoint import (
     FINAL,
     PERIODIC,
     VersionMark,
@@ -55,23 +71,7 @@ from tpdeb.services.checkpoint import (
     set_aside,
     spec_problem,
 )
-from tpdeb.services.config import ConfigError, resolve, to_toml
-from tpdeb.services.metrics import MetricsWriter, hyperparameter_table
-from tpdeb.services.model_wire import model_for, params_message
-from tpdeb.services.presets import shown
-from tpdeb.services.seeding import seed_everything
-from tpdeb.services.service_config import LearnerServiceConfig
-from tpdeb.services.wire import batch_of, finite_values
-from tpdeb.services.zsession import (
-    RateLimitedLog,
-    StopSignal,
-    close_session,
-    declare_publisher,
-    fail,
-    fetch_spec,
-    open_for,
-    say,
-)
+from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
 from tpdeb.tpdeb_core.learner import Learner
 from tpdeb.tpdeb_core.model import state_arrays
 

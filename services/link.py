@@ -22,8 +22,8 @@ import time
 from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.security import Security, check_settings
-from tpdeb.services.zsession import check_endpoints, declare_publisher, fail, say
+from tpdeb.services.net.security import Security, check_settings
+from tpdeb.services.net.session import check_endpoints, declare_publisher, fail, say
 
 PROG = "tpdeb-link"
 UNLIMITED_CHUNK = 64 * 1024
@@ -271,7 +271,7 @@ def stats_reporter(config: LinkConfig):
     import numpy as np
 
     from tpdeb.protocol import Keys, Stats, encode
-    from tpdeb.services.zsession import open_session
+    from tpdeb.services.net.session import open_session
 
     session = open_session("client", [], [config.connect], 60.0, security=Security(
         tls_ca=config.tls_ca, user=config.user, password=config.password))

@@ -18,7 +18,7 @@ import math
 import sys
 from pathlib import Path
 
-from tpdeb.services.metrics import read_metrics
+from tpdeb.services.store.metrics import read_metrics
 
 if sys.version_info >= (3, 11):
     import tomllib
@@ -45,7 +45,7 @@ class Run:
 
 
 def read_run(path: Path, metric: str) -> Run:
-    from tpdeb.services.train_config import TrainConfig
+    from tpdeb.services.config.train import TrainConfig
 
     metrics = path / "metrics.jsonl"
     if not metrics.is_file():
@@ -83,7 +83,7 @@ def variant_labels(runs: list[Run]) -> list[str]:
     keys = sorted({k for r in runs for k in r.settings})
     differing = [k for k in keys if len({json.dumps(r.settings.get(k)) for r in runs}) > 1]
     if "algo" in differing:  # what an algorithm fixes follows from its name
-        from tpdeb.services.presets import ALGORITHMS
+        from tpdeb.services.config.presets import ALGORITHMS
 
         implied = set().union(*(fixed({}) for fixed in ALGORITHMS.values()))
         differing = [k for k in differing if k not in implied]

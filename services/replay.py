@@ -6,7 +6,7 @@ receive → validate → (dedupe, rate-limit) → insert → log → fsync → a
 a queue until the rate limiter allows them (or `sample_wait_s` passes, then they get a "not
 ready" reply). With `persist` on, a fragment is acknowledged only once it is in the write-ahead
 log on disk, and snapshots of the whole state are written in the background
-(services/persistence.py): a restarted server restores everything it ever acknowledged.
+(services/store/persistence.py): a restarted server restores everything it ever acknowledged.
 """
 
 from __future__ import annotations
@@ -36,11 +36,9 @@ from tpdeb.protocol import (
     encode,
 )
 from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.persistence import ReplayPersistence
-from tpdeb.services.service_config import ReplayServiceConfig
-from tpdeb.services.wire import batch_message, finite_values, message_to_fragment, run_spec
-from tpdeb.services.zsession import (
+from tpdeb.services.net.session import (
     RateLimitedLog,
     StopSignal,
     close_session,
@@ -49,6 +47,8 @@ from tpdeb.services.zsession import (
     open_for,
     say,
 )
+from tpdeb.services.net.wire import batch_message, finite_values, message_to_fragment, run_spec
+from tpdeb.services.store.persistence import ReplayPersistence
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
 

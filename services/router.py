@@ -13,9 +13,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.security import access_control, read_auth_file
-from tpdeb.services.service_config import DEFAULT_ENDPOINT, ServiceConfig
-from tpdeb.services.zsession import StopSignal, close_session, fail, open_for, say
+from tpdeb.services.config.service import DEFAULT_ENDPOINT, ServiceConfig
+from tpdeb.services.net.security import access_control, read_auth_file
+from tpdeb.services.net.session import StopSignal, close_session, fail, open_for, say
 
 PROG = "tpdeb-router"
 

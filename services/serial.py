@@ -17,13 +17,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tpdeb.services.checkpoint import save_training
 from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config.presets import shown
+from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.metrics import MetricsWriter, hyperparameter_table
-from tpdeb.services.presets import shown
 from tpdeb.services.seeding import seed_everything
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.store.checkpoint import save_training
+from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
 from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb.tpdeb_core.learner import Learner
 from tpdeb.tpdeb_core.model import ActorCritic

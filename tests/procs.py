@@ -6,21 +6,17 @@ from __future__ import annotations
 import contextlib
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
 from pathlib import Path
 
+from tpdeb.services.launcher.plan import free_port  # noqa: F401 (the tests take it from here)
+
 ROOT = Path(__file__).resolve().parents[1]
-MODULES = {name: f"tpdeb.services.{name}"
-           for name in ("replay", "learner", "actor", "cluster", "router", "link", "certs")}
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+MODULES = {**{name: f"tpdeb.services.{name}"
+              for name in ("replay", "learner", "actor", "cluster", "router", "link")},
+           "certs": "tpdeb.services.net.certs"}
 
 
 class Procs:

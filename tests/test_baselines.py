@@ -10,7 +10,7 @@ from torch.distributions import Independent, Normal, kl_divergence
 
 from tests.test_learner import fragments_and_model
 from tpdeb.services.config import resolve
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.config.train import TrainConfig
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.learner import Learner
 

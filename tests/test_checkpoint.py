@@ -16,13 +16,13 @@ import torch
 from tests.procs import Procs, free_port, pids_with
 from tests.test_learner import fragments_and_model
 from tpdeb.protocol import Keys, Params, Stats, decode
-from tpdeb.services import checkpoint as ckpt
 from tpdeb.services.config import ConfigError
+from tpdeb.services.config.service import LearnerServiceConfig
 from tpdeb.services.learner import LearnerService
-from tpdeb.services.metrics import MetricsWriter, read_metrics
-from tpdeb.services.service_config import LearnerServiceConfig
-from tpdeb.services.wire import run_spec
-from tpdeb.services.zsession import StopSignal, open_session
+from tpdeb.services.net.session import StopSignal, open_session
+from tpdeb.services.net.wire import run_spec
+from tpdeb.services.store import checkpoint as ckpt
+from tpdeb.services.store.metrics import MetricsWriter, read_metrics
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.learner import Learner, LossConfig
 from tpdeb.tpdeb_core.model import ActorCritic

@@ -5,15 +5,11 @@ from pathlib import Path
 
 import pytest
 
-from tpdeb.services.cluster import (
-    RestartPolicy,
-    RestartSettings,
-    child_environment,
-    make_plan,
-    parse_args,
-)
+from tpdeb.services.cluster import parse_args
 from tpdeb.services.config import ConfigError, resolve, to_toml
-from tpdeb.services.service_config import LearnerServiceConfig
+from tpdeb.services.config.service import LearnerServiceConfig
+from tpdeb.services.launcher.plan import child_environment, make_plan
+from tpdeb.services.launcher.restart import RestartPolicy, RestartSettings
 
 ROOT = Path(__file__).resolve().parents[1]
 

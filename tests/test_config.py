@@ -1,7 +1,7 @@
 import pytest
 
 from tpdeb.services.config import ConfigError, resolve, to_toml
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.config.train import TrainConfig
 
 
 def parse(argv, **kw):
@@ -72,7 +72,7 @@ def test_bad_config_files(tmp_path):
 
 
 def test_an_empty_list_flag_clears_the_list():
-    from tpdeb.services.service_config import ReplayServiceConfig
+    from tpdeb.services.config.service import ReplayServiceConfig
 
     cfg = resolve(ReplayServiceConfig, ["--listen", "", "--connect", "tcp/127.0.0.1:7447"],
                   "tpdeb-replay", "test")

@@ -14,9 +14,9 @@ import pytest
 from tests.procs import free_port, pids_with
 from tests.test_services import next_stats, watch_stats
 from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode
-from tpdeb.services.metrics import read_metrics
-from tpdeb.services.persistence import ReplayPersistence
-from tpdeb.services.zsession import open_session
+from tpdeb.services.net.session import open_session
+from tpdeb.services.store.metrics import read_metrics
+from tpdeb.services.store.persistence import ReplayPersistence
 
 ENV = "InvertedPendulum-v5"
 

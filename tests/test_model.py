@@ -3,7 +3,7 @@ import pytest
 import torch
 from torch.distributions import Independent, Normal
 
-from tpdeb.services.wire import check_params
+from tpdeb.services.net.wire import check_params
 from tpdeb.tpdeb_core.learner import log_prob
 from tpdeb.tpdeb_core.model import (
     ActorCritic,

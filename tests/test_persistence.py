@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pytest
 
-from tpdeb.services.persistence import (
+from tpdeb.services.store.persistence import (
     MARKER,
     STATE_FILE,
     CorruptRecord,

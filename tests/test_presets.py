@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.presets import ALGORITHMS, PRESETS_DIR, RUN_IDENTITY, load_preset
-from tpdeb.services.service_config import ActorServiceConfig, LearnerServiceConfig
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.config.presets import ALGORITHMS, PRESETS_DIR, RUN_IDENTITY, load_preset
+from tpdeb.services.config.service import ActorServiceConfig, LearnerServiceConfig
+from tpdeb.services.config.train import TrainConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
@@ -144,7 +144,8 @@ def test_tpdeb_train_announces_the_preset(tmp_path):
 
 
 def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
-    from tpdeb.services.cluster import make_plan, parse_args
+    from tpdeb.services.cluster import parse_args
+    from tpdeb.services.launcher.plan import make_plan
 
     def plan(*flags):
         return make_plan(parse_args([*flags, "--run-dir", str(tmp_path / "run")])).train

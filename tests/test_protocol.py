@@ -31,7 +31,7 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.wire import batch_message
+from tpdeb.services.net.wire import batch_message
 from tpdeb.tpdeb_core.fragments import stack_fragments
 
 T, OBS_DIM, ACT_DIM = 4, 3, 2

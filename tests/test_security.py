@@ -18,13 +18,13 @@ from cryptography import x509
 
 from tests.procs import ROOT, free_port, pids_with
 from tpdeb.protocol import Keys
-from tpdeb.services import certs as certs_cli
-from tpdeb.services.cluster import make_plan, parse_args
+from tpdeb.services.cluster import parse_args
 from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config.service import ActorServiceConfig, ServiceConfig
+from tpdeb.services.launcher.plan import make_plan
 from tpdeb.services.link import LinkConfig
-from tpdeb.services.metrics import read_metrics
-from tpdeb.services.router import RouterConfig
-from tpdeb.services.security import (
+from tpdeb.services.net import certs as certs_cli
+from tpdeb.services.net.security import (
     Security,
     access_control,
     new_passwords,
@@ -32,8 +32,9 @@ from tpdeb.services.security import (
     security_of,
     write_auth_file,
 )
-from tpdeb.services.service_config import ActorServiceConfig, ServiceConfig
-from tpdeb.services.zsession import open_for, open_session, zenoh_config
+from tpdeb.services.net.session import open_for, open_session, zenoh_config
+from tpdeb.services.router import RouterConfig
+from tpdeb.services.store.metrics import read_metrics
 
 ENV = "InvertedPendulum-v5"
 ROLES = ["replay", "learner", "actor-0", "actor-1", "monitor", "link"]

@@ -9,8 +9,8 @@ from pathlib import Path
 import pytest
 import torch
 
-from tpdeb.services.metrics import read_metrics
 from tpdeb.services.serial import main
+from tpdeb.services.store.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 

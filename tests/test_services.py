@@ -16,8 +16,8 @@ import zenoh
 
 from tests.procs import maps_torch, pids_with
 from tpdeb.protocol import SCHEMA_VERSION, Keys, SampleReply, SampleRequest, Stats, decode, encode
-from tpdeb.services.metrics import read_metrics
-from tpdeb.services.zsession import fetch_spec, open_session
+from tpdeb.services.net.session import fetch_spec, open_session
+from tpdeb.services.store.metrics import read_metrics
 
 ENV = "InvertedPendulum-v5"
 
@@ -217,7 +217,7 @@ def test_cluster_behind_a_throttled_link_reports_what_crossed_it(procs, tmp_path
 def test_a_session_close_that_times_out_does_not_fail_a_finished_process(capsys):
     import zenoh
 
-    from tpdeb.services.zsession import close_session
+    from tpdeb.services.net.session import close_session
 
     class Stuck:
         def close(self):

@@ -14,22 +14,17 @@ import pytest
 import zenoh
 
 from tests.procs import pids_with
-from tpdeb.services.cluster import (
+from tpdeb.services.cluster import Cluster, parse_args, stats_interval_s
+from tpdeb.services.config import ConfigError
+from tpdeb.services.launcher.child import Child
+from tpdeb.services.launcher.plan import make_plan
+from tpdeb.services.launcher.restart import (
     MAX_BACKOFF_S,
-    Child,
-    Cluster,
-    Display,
-    Health,
     RestartPolicy,
     RestartSettings,
     RestartTracker,
-    ServiceView,
-    fit,
-    make_plan,
-    parse_args,
-    stats_interval_s,
 )
-from tpdeb.services.config import ConfigError
+from tpdeb.services.launcher.status import Display, Health, ServiceView, fit
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = "InvertedPendulum-v5"

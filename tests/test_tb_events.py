@@ -2,8 +2,8 @@ import struct
 
 import pytest
 
-from tpdeb.services.metrics import MetricsWriter, read_metrics
-from tpdeb.services.tb_events import crc32c
+from tpdeb.services.store.metrics import MetricsWriter, read_metrics
+from tpdeb.services.store.tb_events import crc32c
 
 
 def test_crc32c_known_vector():
@@ -26,7 +26,7 @@ def test_event_file_framing_and_tensorboard_reads_it(tmp_path):
     (events,) = tmp_path.glob("events.out.tfevents.*")
     data = events.read_bytes()
     count, offset = 0, 0
-    from tpdeb.services.tb_events import _masked_crc
+    from tpdeb.services.store.tb_events import _masked_crc
     while offset < len(data):
         (length,) = struct.unpack_from("<Q", data, offset)
         assert struct.unpack_from("<I", data, offset + 8)[0] == _masked_crc(data[offset:offset + 8])

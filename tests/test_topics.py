@@ -7,7 +7,7 @@ import pytest
 
 from tpdeb.protocol import Keys
 from tpdeb.protocol.topics import BY_NAME, ROLES, TOPICS, grants, table_markdown
-from tpdeb.services.zsession import qos
+from tpdeb.services.net.session import qos
 
 ROOT = Path(__file__).resolve().parents[1]
 KEYS = Keys("run1")

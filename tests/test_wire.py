@@ -6,8 +6,8 @@ import torch
 
 from tests.fakes import ScriptedVectorEnv
 from tpdeb.protocol import Params, Trajectory, decode, encode
-from tpdeb.services.model_wire import params_message
-from tpdeb.services.wire import check_params, fragment_to_message, message_to_fragment
+from tpdeb.services.net.model_wire import params_message
+from tpdeb.services.net.wire import check_params, fragment_to_message, message_to_fragment
 from tpdeb.tpdeb_core.fragments import Collector
 from tpdeb.tpdeb_core.model import ActorCritic
 from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes

@@ -18,7 +18,7 @@ import time
 import zenoh
 
 from tpdeb.protocol import DecodeError, Keys, Stats, decode
-from tpdeb.services.zsession import StopSignal, open_session
+from tpdeb.services.net.session import StopSignal, open_session
 
 lock = threading.Lock()
 

@@ -8,7 +8,7 @@ import json
 import math
 from pathlib import Path
 
-from tpdeb.services.tb_events import EventWriter
+from tpdeb.services.store.tb_events import EventWriter
 
 
 def hyperparameter_table(config) -> str:

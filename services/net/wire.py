@@ -1,7 +1,7 @@
 """Between the core's objects and the wire's messages: fragments, parameters, the run spec.
 
 Torch-free: actors and the replay server import it. The torch model's side of the parameter
-message (the model for a spec, a message of its state) is in services/model_wire.py.
+message (the model for a spec, a message of its state) is in services/net/model_wire.py.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ import numpy as np
 
 from tpdeb.protocol import Batch, DecodeError, Params, RunSpec, Trajectory
 from tpdeb.protocol.codec import check_params_shapes
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.config.train import TrainConfig
 from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch
 from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 

@@ -1,6 +1,6 @@
 """The torch model's side of the parameter message: the model for a run spec and a message of
 its state. Only the learner and the tools that evaluate a network import this (and torch);
-actors read parameter messages with `services.wire.policy_from_params`."""
+actors read parameter messages with `tpdeb.services.net.wire.policy_from_params`."""
 
 from __future__ import annotations
 

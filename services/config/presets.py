@@ -15,7 +15,7 @@ from pathlib import Path
 
 from tpdeb.services.config import ConfigError, coerce, load_toml
 
-PRESETS_DIR = Path(__file__).resolve().parents[1] / "deploy" / "presets"
+PRESETS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "presets"
 # Settings that say which run this is, not how to learn: never part of a preset.
 RUN_IDENTITY = {"env_id", "seed", "run_dir", "preset", "exp_name", "total_timesteps", "algo",
                 "log_interval_s"}

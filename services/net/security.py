@@ -247,7 +247,7 @@ class ClusterSecurity:
         if proto != "tcp":
             raise ConfigError(f"endpoint {endpoint!r}: TLS runs over tcp; use tls/{address}")
         if not self.certs_dir:  # the certificate made for the run names this host
-            from tpdeb.services.certs import parse_hosts
+            from tpdeb.services.net.certs import parse_hosts
 
             parse_hosts([address.rpartition(":")[0].strip("[]")], f"endpoint {endpoint}")
         return f"tls/{address}"
@@ -255,7 +255,7 @@ class ClusterSecurity:
     def prepare(self, directory: Path, users: Iterable[str], hosts: Iterable[str]) -> None:
         """Certificates (unless certs_dir names them) and the password dictionary, in
         `directory` (the run dir's security/, readable by its owner only)."""
-        from tpdeb.services.certs import FILES, write_certs
+        from tpdeb.services.net.certs import FILES, write_certs
 
         directory.mkdir(parents=True, exist_ok=True)
         directory.chmod(0o700)

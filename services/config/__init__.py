@@ -146,7 +146,7 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, section: s
     for name, value in args.items():
         values[name] = coerce(cls, name, value, "--" + name.replace("_", "-"))
     if "preset" in names:
-        from tpdeb.services.presets import layer
+        from tpdeb.services.config.presets import layer
 
         values = layer(cls, values)
     try:

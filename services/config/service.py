@@ -8,8 +8,8 @@ import re
 from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.security import check_settings
-from tpdeb.services.train_config import TrainConfig
+from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.net.security import check_settings
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")

@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.persistence import fsync_dir
+from tpdeb.services.store.persistence import fsync_dir
 
 PERIODIC, FINAL = "ckpt", "final"
 _NAME = re.compile(r"(ckpt|final)_(\d+)_(\d+)\.pt")

@@ -21,7 +21,7 @@ import zenoh
 from tpdeb.protocol import DecodeError, Keys, RunSpec, decode
 from tpdeb.protocol.topics import BY_NAME
 from tpdeb.services.config import ConfigError
-from tpdeb.services.security import Security, security_of
+from tpdeb.services.net.security import Security, security_of
 
 # A put blocked longer than this closes the transport and loses the data (DESIGN §3). Actors
 # already bound their outbox, so waiting long here only delays them, it never loses anything.
@@ -85,7 +85,7 @@ def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeo
 
 
 def apply_security(conf, security: Security) -> None:
-    """TLS files, user/password authentication and access-control rules (services.security)."""
+    """TLS files, user/password authentication and access-control rules (net/security.py)."""
     settings = {
         "transport/link/tls/root_ca_certificate": security.tls_ca,
         "transport/link/tls/listen_certificate": security.tls_cert,

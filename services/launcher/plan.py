@@ -1,0 +1,194 @@
+"""The launch plan: the cluster file, flags and TPDEB_* variables resolved once into what to
+start, in which order, with which training configuration (DESIGN §5)."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import socket
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tpdeb.services.config import ENV_PREFIX, ConfigError, coerce, load_toml
+from tpdeb.services.config.presets import layer
+from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.launcher.restart import RESTART_KEYS, RestartPolicy, RestartSettings
+from tpdeb.services.net.security import SECURITY_KEYS, ClusterSecurity
+
+ROOT = Path(__file__).resolve().parents[2]
+DEFAULT_FILE = ROOT / "deploy" / "local.toml"
+ROLES = ("router", "replay", "learner", "actor")
+SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env", "restart"}
+CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", *RESTART_KEYS}
+LINK_KEYS = ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms", "queue_ms")
+
+
+
+@dataclass
+class ServiceSpec:
+    role: str
+    command: str
+    replicas: int = 1
+    depends_on: list[str] = field(default_factory=list)
+    args: list[str] = field(default_factory=list)
+    env: dict[str, str] = field(default_factory=dict)
+    restart: RestartPolicy = field(default_factory=RestartPolicy)
+
+
+@dataclass
+class Plan:
+    run_id: str
+    endpoint: str
+    stop_timeout_s: float
+    start_timeout_s: float
+    train: TrainConfig
+    services: list[ServiceSpec]  # in start order
+    source: str
+    link: dict = field(default_factory=dict)  # [link] settings; empty: actors connect directly
+    link_endpoint: str = ""
+    restarts: RestartSettings = field(default_factory=RestartSettings)
+    security: ClusterSecurity = field(default_factory=ClusterSecurity)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
+    ordered: list[ServiceSpec] = []
+    visiting: set[str] = set()
+
+    def visit(name: str) -> None:
+        if any(s.role == name for s in ordered):
+            return
+        if name in visiting:
+            raise ConfigError(f"services: depends_on forms a cycle through {name!r}")
+        visiting.add(name)
+        for dep in services[name].depends_on:
+            if dep not in services:
+                raise ConfigError(f"services.{name}.depends_on: unknown service {dep!r}")
+            visit(dep)
+        ordered.append(services[name])
+
+    for name in sorted(services, key=lambda n: n != "router"):  # the network comes up first
+        visit(name)
+    return ordered
+
+
+def make_plan(args: argparse.Namespace) -> Plan:
+    path = Path(args.config) if args.config else DEFAULT_FILE
+    data = load_toml(path)
+    unknown = set(data) - {"cluster", "train", "services", "link", "security"}
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; expected cluster, "
+                          "train, services, link, security")
+    cluster = data.get("cluster", {})
+    if set(cluster) - CLUSTER_KEYS:
+        raise ConfigError(f"{path} [cluster]: unknown key(s) {sorted(set(cluster) - CLUSTER_KEYS)}"
+                          f"; known: {sorted(CLUSTER_KEYS)}")
+    services = {}
+    for role, body in data.get("services", {}).items():
+        if role not in ROLES:
+            raise ConfigError(f"{path}: unknown service {role!r}; services are {ROLES}")
+        if set(body) - SERVICE_KEYS:
+            raise ConfigError(f"{path} [services.{role}]: unknown key(s) "
+                              f"{sorted(set(body) - SERVICE_KEYS)}; known: {sorted(SERVICE_KEYS)}")
+        body = dict(body)
+        restart = RestartPolicy.parse(body.pop("restart", "on-failure"),
+                                      f"{path} [services.{role}]")
+        services[role] = ServiceSpec(role=role, restart=restart, **body)
+    missing = set(ROLES) - set(services)
+    if missing:
+        raise ConfigError(f"{path}: services {sorted(missing)} are missing (see "
+                          f"{DEFAULT_FILE} for their sections)")
+    if services["router"].depends_on:
+        raise ConfigError(f"{path} [services.router]: depends_on="
+                          f"{services['router'].depends_on}: the router starts first; remove it")
+    if args.actors is not None:
+        services["actor"].replicas = args.actors
+    for spec in services.values():
+        if spec.replicas < (1 if spec.role == "actor" else 0) or (
+                spec.role != "actor" and spec.replicas != 1):
+            raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
+                              "replay and the learner run once, actors at least once")
+    train = dict(data.get("train", {}))
+    # The shell's TPDEB_* training variables rank between the file and the flags, as for any
+    # service; resolved here once, so that train.toml is the whole training configuration and
+    # no child applies them again on top of a flag (see child_environment).
+    train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
+                  for name, value in train_variables(os.environ).items()})
+    overrides = {"env_id": args.env_id, "total_timesteps": args.total_timesteps,
+                 "seed": args.seed, "run_dir": args.run_dir, "num_envs": args.num_envs}
+    train.update({k: v for k, v in overrides.items() if v is not None})
+    for item in args.set or []:
+        key, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        train[key.strip().replace("-", "_")] = value.strip()
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
+    if set(train) - names:
+        raise ConfigError(f"train setting(s) {sorted(set(train) - names)} do not exist "
+                          "(tpdeb-train --help lists them)")
+    train_config = coerce_train(train)
+    if not train_config.run_dir:
+        train_config.run_dir = str(train_config.default_run_dir())
+    endpoint = args.endpoint or cluster.get("endpoint", "tcp/127.0.0.1:auto")
+    if endpoint.endswith(":auto"):
+        endpoint = f"{endpoint[:-len('auto')]}{free_port()}"
+    security = ClusterSecurity.from_section(
+        data.get("security", {}), {k: getattr(args, k, None) for k in SECURITY_KEYS}, str(path))
+    endpoint = security.endpoint(endpoint)
+    link = link_settings(data.get("link", {}), args, path)
+    link_endpoint = ""
+    if any(link.get(k, 0) for k in LINK_KEYS[:4]):  # the link forwards TLS bytes unchanged
+        link_endpoint = security.endpoint(f"tcp/127.0.0.1:{free_port()}")
+    return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
+                stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
+                start_timeout_s=float(cluster.get("start_timeout_s", 120)),
+                train=train_config, services=start_order(services), source=str(path),
+                link=link, link_endpoint=link_endpoint,
+                restarts=RestartSettings.from_section(cluster, path), security=security)
+
+
+def train_variables(environ) -> dict[str, str]:
+    """The training settings set in an environment: {field: value} of its TPDEB_<FIELD>."""
+    return {f.name: environ[ENV_PREFIX + f.name.upper()] for f in dataclasses.fields(TrainConfig)
+            if ENV_PREFIX + f.name.upper() in environ}
+
+
+def child_environment(environ, *extra: dict) -> dict[str, str]:
+    """A child's environment: the launcher's without the training variables it has already
+    resolved into train.toml (they would outrank the file, and a flag the file carries), then
+    `extra` (the service's own `env`, its credentials) on top."""
+    trained = {ENV_PREFIX + name.upper() for name in train_variables(environ)}
+    env = {k: v for k, v in environ.items() if k not in trained}
+    for more in extra:
+        env.update(more)
+    return env
+
+
+def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:
+    """The [link] section with --link-* flags on top; every value a number ≥ 0."""
+    unknown = set(section) - set(LINK_KEYS)
+    if unknown:
+        raise ConfigError(f"{path} [link]: unknown key(s) {sorted(unknown)}; known: "
+                          f"{list(LINK_KEYS)}")
+    link = dict(section)
+    for key in LINK_KEYS:
+        flag = getattr(args, f"link_{key}", None)
+        if flag is not None:
+            link[key] = flag
+    for key, value in link.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or value < 0:
+            raise ConfigError(f"[link] {key}={value!r}: expected a number ≥ 0 (0 = off)")
+    return link
+
+
+def coerce_train(values: dict) -> TrainConfig:
+    """Values from TOML/flags (strings allowed) over the task's preset and the algorithm's
+    settings → a validated TrainConfig."""
+    return TrainConfig(**layer(TrainConfig, {k: coerce(TrainConfig, k, v, "train")
+                                             for k, v in values.items()}))
