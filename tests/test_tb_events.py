@@ -1,17 +1,11 @@
-import struct
+"""The run dir's metrics: metrics.jsonl and TensorBoard events that TensorBoard itself reads."""
 
 import pytest
 
 from tpdeb.services.store.metrics import MetricsWriter, read_metrics
-from tpdeb.services.store.tb_events import crc32c
 
 
-def test_crc32c_known_vector():
-    assert crc32c(b"123456789") == 0xE3069283
-    assert crc32c(b"") == 0
-
-
-def test_event_file_framing_and_tensorboard_reads_it(tmp_path):
+def test_metrics_reach_jsonl_and_tensorboard_keyed_by_env_steps(tmp_path):
     writer = MetricsWriter(tmp_path)
     writer.text("hyperparameters", "|param|value|\n|-|-|\n|seed|1|")
     for step in range(5):
@@ -23,19 +17,7 @@ def test_event_file_framing_and_tensorboard_reads_it(tmp_path):
     assert [r["global_step"] for r in rows] == [0, 100, 200, 300, 400]
     assert rows[3]["charts/episodic_return"] == 4.5
 
-    (events,) = tmp_path.glob("events.out.tfevents.*")
-    data = events.read_bytes()
-    count, offset = 0, 0
-    from tpdeb.services.store.tb_events import _masked_crc
-    while offset < len(data):
-        (length,) = struct.unpack_from("<Q", data, offset)
-        assert struct.unpack_from("<I", data, offset + 8)[0] == _masked_crc(data[offset:offset + 8])
-        record = data[offset + 12:offset + 12 + length]
-        assert struct.unpack_from("<I", data, offset + 12 + length)[0] == _masked_crc(record)
-        offset += 16 + length
-        count += 1
-    assert count == 1 + 1 + 5  # file version, text, five scalar events
-
+    assert len(list(tmp_path.glob("events.out.tfevents.*"))) == 1
     accumulator = pytest.importorskip(
         "tensorboard.backend.event_processing.event_accumulator")
     acc = accumulator.EventAccumulator(str(tmp_path))
@@ -43,4 +25,5 @@ def test_event_file_framing_and_tensorboard_reads_it(tmp_path):
     returns = acc.Scalars("charts/episodic_return")
     assert [e.step for e in returns] == [0, 100, 200, 300, 400]
     assert returns[2].value == pytest.approx(3.0)
-    assert "hyperparameters" in acc.Tags()["tensors"]
+    assert "charts/SPS" not in acc.Tags()["scalars"]
+    assert "hyperparameters/text_summary" in acc.Tags()["tensors"]

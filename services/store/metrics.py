@@ -1,5 +1,5 @@
-"""Run-directory metrics: one JSON object per line in metrics.jsonl plus TensorBoard events,
-both keyed by `global_step` (environment steps), with CleanRL's tag names."""
+"""Run-directory metrics: one JSON object per line in metrics.jsonl plus TensorBoard events
+(tensorboardX), both keyed by `global_step` (environment steps), with CleanRL's tag names."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import json
 import math
 from pathlib import Path
 
-from tpdeb.services.store.tb_events import EventWriter
+FLUSH_S = 10.0  # TensorBoard events reach the disk at least this often
 
 
 def hyperparameter_table(config) -> str:
@@ -18,6 +18,10 @@ def hyperparameter_table(config) -> str:
 
 
 class MetricsWriter:
+    """Writes metrics.jsonl and TensorBoard events. Only the processes that train write them
+    (the learner, tpdeb-train): tensorboardX is imported here, not at module level, because it
+    loads torch, and tools that only read metrics (tpdeb-plot) must not."""
+
     def __init__(self, run_dir: str | Path):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -25,14 +29,17 @@ class MetricsWriter:
         _drop_torn_line(path)
         # Append: a restarted (resumed) process continues the file its predecessor wrote.
         self._jsonl = open(path, "a")  # noqa: SIM115
-        self._events = EventWriter(self.run_dir)
+        from tensorboardX import SummaryWriter
+
+        self._events = SummaryWriter(str(self.run_dir), flush_secs=FLUSH_S)
 
     def log(self, global_step: int, values: dict[str, float]) -> None:
         clean = {k: float(v) for k, v in values.items() if v is not None and math.isfinite(v)}
         if not clean:
             return
         self._jsonl.write(json.dumps({"global_step": int(global_step), **clean}) + "\n")
-        self._events.add_scalars(clean, int(global_step))
+        for tag, value in clean.items():
+            self._events.add_scalar(tag, value, int(global_step))
 
     def text(self, tag: str, text: str) -> None:
         self._events.add_text(tag, text)
