@@ -14,6 +14,7 @@ decoding) would cost more CPU than the acting it steers.
 
 from __future__ import annotations
 
+import logging
 import secrets
 import sys
 import threading
@@ -35,21 +36,21 @@ from tpdeb.protocol import (
 from tpdeb.services.config import ConfigError, resolve
 from tpdeb.services.config.service import ActorServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.logs import rate_limited, setup_logging
 from tpdeb.services.net.session import (
-    RateLimitedLog,
     StopSignal,
     close_session,
     declare_publisher,
     fail,
     fetch_spec,
     open_for,
-    say,
 )
 from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
 
 PROG = "tpdeb-actor"
+log = logging.getLogger(PROG)
 PARAMS_POLL_S = 10.0
 
 
@@ -101,7 +102,7 @@ class ActorService:
         self.config, self.spec, self.envs, self.session, self.stop = (
             config, spec, envs, session, stop)
         self.keys = Keys(config.run_id)
-        self.log_bad = RateLimitedLog(PROG)
+        self.log_bad = rate_limited(log)
         self.collector: Collector | None = None  # made when the first parameters arrive
         self.outbox = Outbox(config.outbox_fragments)
         # A new number per process run: the replay de-duplicates by (actor, incarnation, seq),
@@ -227,7 +228,7 @@ class ActorService:
         self.wait_for_params()
         self.params_wanted.set()
         self.puller.start()
-        say(PROG, f"actor {cfg.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
+        log.info(f"actor {cfg.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
                   f"v{self.collector.policy_version}")
         last_stats = last_check = time.monotonic()
         last_steps = 0
@@ -288,9 +289,11 @@ class ActorService:
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()
     try:
         config = resolve(ActorServiceConfig, argv, PROG,
                          "TPDEB actor: steps environments, sends fragments to the replay server.")
+        setup_logging(config.log_level)
         seed_everything(config.seed + 1000 * config.actor_id)
         envs = make_vector_env(config.env_id, config.num_envs)  # an unknown env id fails here
         obs_dim, act_dim, _, _ = space_dims(envs)
@@ -308,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
         service.run()
     except ConfigError as exc:
         if stop:  # stopped while waiting for the run: not an error
-            say(PROG, f"actor {config.actor_id} stopped ({stop.reason}) before it started")
+            log.info(f"actor {config.actor_id} stopped ({stop.reason}) before it started")
             return 0
         return fail(PROG, exc)
     finally:
@@ -316,7 +319,7 @@ def main(argv: list[str] | None = None) -> int:
             service.close()
         close_session(session, PROG)
     steps = service.collector.env_steps if service.collector is not None else 0
-    say(PROG, f"actor {config.actor_id} stopped ({stop.reason}): {steps:,} "
+    log.info(f"actor {config.actor_id} stopped ({stop.reason}): {steps:,} "
               f"steps, {service.sent} fragments sent, {service.outbox.acked} acknowledged, "
               f"{service.resent} resent")
     return 0

@@ -21,6 +21,7 @@ collected with, so policy lag and sample age are measured in versions as well.
 
 from __future__ import annotations
 
+import logging
 import queue
 import sys
 import threading
@@ -47,16 +48,15 @@ from tpdeb.protocol import (
 from tpdeb.services.config import ConfigError, resolve, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import LearnerServiceConfig
+from tpdeb.services.logs import rate_limited, setup_logging
 from tpdeb.services.net.model_wire import model_for, params_message
 from tpdeb.services.net.session import (
-    RateLimitedLog,
     StopSignal,
     close_session,
     declare_publisher,
     fail,
     fetch_spec,
     open_for,
-    say,
 )
 from tpdeb.services.net.wire import batch_of, finite_values
 from tpdeb.services.seeding import seed_everything
@@ -76,6 +76,7 @@ from tpdeb.tpdeb_core.learner import Learner
 from tpdeb.tpdeb_core.model import state_arrays
 
 PROG = "tpdeb-learner"
+log = logging.getLogger(PROG)
 LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")
 
 
@@ -96,7 +97,7 @@ class LearnerService:
         elif config.resume == "never":
             aside = set_aside(self.run_dir)
             if aside is not None:
-                say(PROG, f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
+                log.info(f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
         # The model's state tensors (views of its parameters and buffers, which every update and
         # restore changes in place): taken once, walking the module tree per publication costs
         # more than encoding the parameters.
@@ -104,11 +105,11 @@ class LearnerService:
         self.versions = VersionMark(checkpoint_dir(self.run_dir))
         self.version_offset = self.versions.offset(self.learner.updates, restored_version)
         if resume is not None:
-            say(PROG, f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
+            log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
                       f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.metrics = MetricsWriter(self.run_dir)
-        self.log_bad = RateLimitedLog(PROG)
+        self.log_bad = rate_limited(log)
         self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
         self.stats_inbox: queue.Queue = queue.Queue()
         self.replay_stats: dict = {}
@@ -300,7 +301,7 @@ class LearnerService:
         self.publish_params(eager=True)  # actors starting up wait for the first version
         for fetcher in self.fetchers:
             fetcher.start()
-        say(PROG, f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
+        log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
                   f"steps ({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
         start = last_log = last_stats = last_checkpoint = time.monotonic()
         first_step = last_step = stats_step = self.global_step
@@ -444,7 +445,7 @@ class LearnerService:
         self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.lag_sum, self.lag_count = 0.0, 0
-        say(PROG, f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
+        log.info(f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
                   f"actors {len(self.actors_heard)}")
 
@@ -479,20 +480,22 @@ class LearnerService:
                 fetcher.join(timeout=self.config.request_timeout_s)
         self.metrics.close()
         self.token.undeclare()
-        say(PROG, f"{'done' if finished else 'stopped'} at {self.global_step:,} steps, "
+        log.info(f"{'done' if finished else 'stopped'} at {self.global_step:,} steps, "
                   f"{self.learner.updates:,} updates; checkpoint {path}")
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()
     try:
         config = resolve(LearnerServiceConfig, argv, PROG,
                          "TPDEB learner: trains from the replay server, publishes parameters.")
+        setup_logging(config.log_level)
         # The learner shares the machine with actors and the replay server: more intra-op
         # threads than it is given cores makes every update slower, not faster.
         torch.set_num_threads(config.torch_threads)
         # A bad --resume PATH fails here, before any network wait.
         resume = choose_resume(config.resume, config.default_run_dir(),
-                               lambda line: say(PROG, line))
+                               lambda line: log.info(line))
         session = open_for(config)
     except ConfigError as exc:
         return fail(PROG, exc)
@@ -507,7 +510,7 @@ def main(argv: list[str] | None = None) -> int:
     except ConfigError as exc:
         close_session(session, PROG)
         if stop:  # stopped while waiting for the replay server: not an error
-            say(PROG, f"stopped ({stop.reason}) before training")
+            log.info(f"stopped ({stop.reason}) before training")
             return 0
         return fail(PROG, exc)
     finished = False

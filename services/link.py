@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import logging
 import random
 import signal
 import socket
@@ -22,10 +23,12 @@ import time
 from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.logs import setup_logging
 from tpdeb.services.net.security import Security, check_settings
-from tpdeb.services.net.session import check_endpoints, declare_publisher, fail, say
+from tpdeb.services.net.session import check_endpoints, declare_publisher, fail
 
 PROG = "tpdeb-link"
+log = logging.getLogger(PROG)
 UNLIMITED_CHUNK = 64 * 1024
 
 
@@ -206,7 +209,7 @@ class Link:
             await asyncio.get_running_loop().sock_connect(sock, info[4])
             router_reader, router_writer = await asyncio.open_connection(sock=sock)
         except OSError as exc:
-            say(PROG, f"cannot reach the router at {self.config.connect} ({exc.strerror}): is "
+            log.info(f"cannot reach the router at {self.config.connect} ({exc.strerror}): is "
                       "tpdeb-replay running there? (normal while a run is shutting down)")
             actor_writer.close()
             return
@@ -250,7 +253,7 @@ async def serve(config: LinkConfig, stop: asyncio.Event, report) -> None:
                           "(--listen)") from None
     rates = " ".join(f"{d.name} {d.rate:,.0f} B/s" if d.rate else f"{d.name} unlimited"
                      for d in (link.up, link.down))
-    say(PROG, f"{config.listen} ⇄ {config.connect}: {rates}, latency {config.latency_ms:g} ms "
+    log.info(f"{config.listen} ⇄ {config.connect}: {rates}, latency {config.latency_ms:g} ms "
               f"± {config.jitter_ms:g} ms")
     previous: dict = {}
     last = time.monotonic()
@@ -286,6 +289,7 @@ def stats_reporter(config: LinkConfig):
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()
     try:
         config = resolve(LinkConfig, argv, PROG,
                          "Throttled TCP bridge between actors and the learner-side router.")
@@ -303,7 +307,7 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         close()
         loop.close()
-    say(PROG, "stopped")
+    log.info("stopped")
     return 0
 
 

@@ -11,6 +11,7 @@ log on disk, and snapshots of the whole state are written in the background
 
 from __future__ import annotations
 
+import logging
 import queue
 import shutil
 import sys
@@ -38,14 +39,13 @@ from tpdeb.protocol import (
 from tpdeb.services.config import ConfigError, resolve, to_toml
 from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.logs import rate_limited, setup_logging
 from tpdeb.services.net.session import (
-    RateLimitedLog,
     StopSignal,
     close_session,
     declare_publisher,
     fail,
     open_for,
-    say,
 )
 from tpdeb.services.net.wire import batch_message, finite_values, message_to_fragment, run_spec
 from tpdeb.services.store.persistence import ReplayPersistence
@@ -53,6 +53,7 @@ from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
+log = logging.getLogger(PROG)
 _NO_MOMENTS = (0.0, 0.0, 0.0)
 
 
@@ -159,7 +160,7 @@ class ReplayServer:
         self.waiting: deque[tuple[float, object, SampleRequest]] = deque()
         self.ledgers: dict[int, ActorLedger] = defaultdict(ActorLedger)
         self.bad: dict[str, int] = defaultdict(int)
-        self.log_bad = RateLimitedLog(PROG)
+        self.log_bad = rate_limited(log)
         self.inserted_steps = 0
         self.samples_served = 0
         self.priority_updates = 0
@@ -168,6 +169,7 @@ class ReplayServer:
         self.persistence: ReplayPersistence | None = None
         self.restored = ""  # what restore() found, for the start-up line
         self.last_snapshot = time.monotonic()
+        self.last_stats = 0.0
         self._declare()
 
     def _declare(self) -> None:
@@ -190,28 +192,34 @@ class ReplayServer:
 
     # -- the loop
     def run(self) -> None:
-        last_stats = 0.0
         while not self.stop:
-            try:
-                kind, item = self.inbox.get(timeout=0.05)
+            self.poll(0.05)
+
+    def poll(self, timeout_s: float) -> None:
+        """One pass of the loop: take what arrived (waiting up to `timeout_s` for the first
+        item), ingest what the rate limiter allows, serve the sample requests it allows, make
+        the log durable, then acknowledge; stats and snapshots when they are due."""
+        try:
+            kind, item = self.inbox.get(timeout=timeout_s) if timeout_s > 0 else \
+                self.inbox.get_nowait()
+            self._handle(kind, item)
+            while True:  # drain what arrived meanwhile before acting on it
+                kind, item = self.inbox.get_nowait()
                 self._handle(kind, item)
-                while True:  # drain what arrived meanwhile before acting on it
-                    kind, item = self.inbox.get_nowait()
-                    self._handle(kind, item)
-            except queue.Empty:
-                pass
-            self._ingest_pending()
-            self._serve_waiting()
-            if self.persistence is not None:
-                self.persistence.sync()  # acks below promise that the fragments are on disk
-            self._flush_acks()
-            now = time.monotonic()
-            if now - last_stats >= self.config.stats_interval_s:
-                self.publish_stats()
-                last_stats = now
-            interval = self.config.snapshot_interval_s
-            if self.persistence is not None and interval and now - self.last_snapshot >= interval:
-                self.snapshot()
+        except queue.Empty:
+            pass
+        self._ingest_pending()
+        self._serve_waiting()
+        if self.persistence is not None:
+            self.persistence.sync()  # acks below promise that the fragments are on disk
+        self._flush_acks()
+        now = time.monotonic()
+        if now - self.last_stats >= self.config.stats_interval_s:
+            self.publish_stats()
+            self.last_stats = now
+        interval = self.config.snapshot_interval_s
+        if self.persistence is not None and interval and now - self.last_snapshot >= interval:
+            self.snapshot()
 
     def _handle(self, kind: str, item) -> None:
         if kind == "sample":
@@ -300,7 +308,7 @@ class ReplayServer:
         if self.config.restore == "never" and directory.exists() and any(directory.iterdir()):
             aside = directory.with_name(f"{directory.name}.set-aside-{int(time.time())}")
             shutil.move(directory, aside)
-            say(PROG, f"restore=never: earlier replay state moved to {aside}")
+            log.info(f"restore=never: earlier replay state moved to {aside}")
         persistence = ReplayPersistence(directory, self.config.keep_snapshots)
         started = time.perf_counter()
         state, records = persistence.load(self._decode_stored)
@@ -311,7 +319,7 @@ class ReplayServer:
             self._insert(self._decode_stored(payload), replaying=True)
             replayed += 1
         if persistence.skipped:
-            say(PROG, f"skipped an unreadable snapshot ({persistence.skipped})")
+            log.info(f"skipped an unreadable snapshot ({persistence.skipped})")
         self.persistence = persistence  # only now: a failed restore must not snapshot over it
         if state is not None or replayed:
             self.restored = (f"restored {len(self.replay):,} fragments ({self.inserted_steps:,} "
@@ -338,7 +346,7 @@ class ReplayServer:
                  "priority_updates": self.priority_updates,
                  "ledgers": {a: ledger.state() for a, ledger in self.ledgers.items()}}
         if self.persistence.error is not None:
-            say(PROG, f"a snapshot failed ({self.persistence.error}); the log still holds "
+            log.info(f"a snapshot failed ({self.persistence.error}); the log still holds "
                       f"every fragment, but grows until one succeeds: check free space and "
                       f"permissions in {self.persistence.dir}")
             self.persistence.error = None
@@ -482,9 +490,11 @@ class ReplayServer:
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()
     try:
         config = resolve(ReplayServiceConfig, argv, PROG,
                          "TPDEB replay server: dual prioritized/uniform replay over Zenoh.")
+        setup_logging(config.log_level)
         envs = make_vector_env(config.env_id, 1)
         spec = run_spec(config, *space_dims(envs))
         envs.close()
@@ -505,16 +515,16 @@ def main(argv: list[str] | None = None) -> int:
         close_session(session, PROG)
         return fail(PROG, exc)
     where = ", ".join(config.listen) or f"the router at {', '.join(config.connect)}"
-    say(PROG, f"run {config.run_id}: serving {spec.env_id} (obs {spec.obs_dim}, act "
+    log.info(f"run {config.run_id}: serving {spec.env_id} (obs {spec.obs_dim}, act "
               f"{spec.act_dim}, T {spec.fragment_len}) on {where}")
     if server.restored:
-        say(PROG, server.restored)
+        log.info(server.restored)
     try:
         server.run()
     finally:
         server.close()
         close_session(session, PROG)
-    say(PROG, f"stopped ({stop.reason}); {server.inserted_steps:,} steps ingested, "
+    log.info(f"stopped ({stop.reason}); {server.inserted_steps:,} steps ingested, "
               f"{sum(server.bad.values())} bad messages dropped")
     return 0
 

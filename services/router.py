@@ -8,16 +8,19 @@ It is also where TLS, authentication and access-control rules are enforced.
 
 from __future__ import annotations
 
+import logging
 import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError, resolve
 from tpdeb.services.config.service import DEFAULT_ENDPOINT, ServiceConfig
+from tpdeb.services.logs import setup_logging
 from tpdeb.services.net.security import access_control, read_auth_file
-from tpdeb.services.net.session import StopSignal, close_session, fail, open_for, say
+from tpdeb.services.net.session import StopSignal, close_session, fail, open_for
 
 PROG = "tpdeb-router"
+log = logging.getLogger(PROG)
 
 
 @dataclass
@@ -50,22 +53,24 @@ class RouterConfig(ServiceConfig):
 
 
 def main(argv: list[str] | None = None) -> int:
+    setup_logging()
     try:
         config = resolve(RouterConfig, argv, PROG, "TPDEB router: the Zenoh router of a run.")
+        setup_logging(config.log_level)
         session = open_for(config, "router")
     except ConfigError as exc:
         return fail(PROG, exc)
     stop = StopSignal().install()
     guards = [name for name, on in (("TLS", config.tls_cert), ("user/password", config.auth_file),
                                     ("access control", config.acl)) if on]
-    say(PROG, f"routing on {', '.join(config.listen)}"
+    log.info(f"routing on {', '.join(config.listen)}"
               f"{' with ' + ', '.join(guards) if guards else ''}")
     try:
         while not stop.wait(1.0):
             pass
     finally:
         close_session(session, PROG)
-    say(PROG, f"stopped ({stop.reason})")
+    log.info(f"stopped ({stop.reason})")
     return 0
 
 

@@ -21,3 +21,19 @@ def procs(tmp_path):
 @pytest.fixture
 def endpoint():
     return f"tcp/127.0.0.1:{free_port()}"
+
+
+@pytest.fixture(autouse=True)
+def service_logging():
+    """Services made in-process log as their process would (their lines on stdout and stderr,
+    where capsys sees them); the root logger is as it was after each test."""
+    import logging
+
+    from tpdeb.services.logs import setup_logging
+
+    root = logging.getLogger()
+    handlers, level = list(root.handlers), root.level
+    setup_logging("info")
+    yield
+    root.handlers[:] = handlers
+    root.setLevel(level)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.logs import LEVELS
 from tpdeb.services.net.security import check_settings
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
@@ -28,6 +29,8 @@ class ServiceConfig(TrainConfig):
     """how long to wait for the router (and for the run spec) before giving up"""
     stats_interval_s: float = 1.0
     """seconds between stats publications"""
+    log_level: str = "info"
+    """debug, info, warning or error: what the service prints"""
     tcp_buffer_bytes: int = 0
     """socket buffers of this process's Zenoh TCP links (0: the OS's autotuning); small values
     keep a throttled link from queueing seconds of data ahead of acks and keep-alives"""
@@ -54,6 +57,8 @@ class ServiceConfig(TrainConfig):
         super().__post_init__()
         if not _RUN_ID.fullmatch(self.run_id):
             raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
+        if self.log_level not in LEVELS:
+            raise ConfigError(f"log_level={self.log_level!r}: expected one of {', '.join(LEVELS)}")
         if self.connect_timeout_s <= 0:
             raise ConfigError(f"connect_timeout_s={self.connect_timeout_s}: must be > 0")
         check_settings(self.listen, self.connect, self.tls_ca, self.tls_cert, self.tls_key,

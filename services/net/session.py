@@ -9,10 +9,10 @@ Multicast scouting is off; nothing is discovered that was not named.
 from __future__ import annotations
 
 import json
+import logging
 import signal
 import socket
 import ssl
-import sys
 import threading
 import time
 
@@ -263,7 +263,7 @@ def open_for(config, mode: str = "client") -> zenoh.Session:
 
 def fail(prog: str, exc: Exception) -> int:
     """One line on stderr, exit status 2: how every service refuses bad settings."""
-    print(f"{prog}: error: {exc}", file=sys.stderr, flush=True)
+    logging.getLogger(prog).error(f"error: {exc}")
     return 2
 
 
@@ -294,39 +294,15 @@ class StopSignal:
         return self.event.wait(timeout_s)
 
 
-class RateLimitedLog:
-    """Logs at most one line per `interval_s` per kind, with a count of what was suppressed."""
-
-    def __init__(self, prog: str, interval_s: float = 5.0):
-        self.prog, self.interval_s = prog, interval_s
-        self._last: dict[str, float] = {}
-        self._suppressed: dict[str, int] = {}
-        self._lock = threading.Lock()
-
-    def __call__(self, kind: str, line: str) -> None:
-        now = time.monotonic()
-        with self._lock:
-            if now - self._last.get(kind, -1e9) < self.interval_s:
-                self._suppressed[kind] = self._suppressed.get(kind, 0) + 1
-                return
-            self._last[kind] = now
-            extra = self._suppressed.pop(kind, 0)
-        more = f" (+{extra} more since the last report)" if extra else ""
-        print(f"{self.prog}: {line}{more}", file=sys.stderr, flush=True)
-
-
 def close_session(session, prog: str) -> None:
     """Close a session at the end of a process. A close that times out (the router is gone or
     the machine is overloaded) loses nothing at that point: say so, and go on exiting."""
     try:
         session.close()
     except zenoh.ZError as exc:
-        say(prog, f"the Zenoh session did not close cleanly ({str(exc).split(' at ')[0]}); "
-                  "exiting anyway")
-
-
-def say(prog: str, line: str) -> None:
-    print(f"{prog}: {line}", flush=True)
+        logging.getLogger(prog).info(
+            f"the Zenoh session did not close cleanly ({str(exc).split(' at ')[0]}); exiting "
+            "anyway")
 
 
 def fetch_spec(session, keys: Keys, timeout_s: float, stop=None) -> RunSpec:
