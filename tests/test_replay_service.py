@@ -1,0 +1,117 @@
+"""The replay server's delivery rules and the actor's outbox, in process on the in-memory
+transport (no Zenoh network, no subprocess): de-duplication, acknowledgement after ingest,
+not-ready replies, refusals, back-pressure and resends."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from tests.test_protocol import ACT_DIM, OBS_DIM, T, make_traj
+from tpdeb.protocol import Ack, Keys, SampleReply, SampleRequest, decode, encode
+from tpdeb.services.actor import Outbox
+from tpdeb.services.config.service import ReplayServiceConfig
+from tpdeb.services.net.memory import MemoryBus, matches
+from tpdeb.services.net.session import StopSignal
+from tpdeb.services.net.wire import run_spec
+from tpdeb.services.replay import ReplayServer
+
+RUN = "mem"
+
+
+@pytest.fixture
+def replay():
+    config = ReplayServiceConfig(
+        run_id=RUN, connect=("tcp/127.0.0.1:1",), env_id="Hopper-v5", fragment_len=T,
+        batch_fragments=2, learning_starts_fragments=2, prioritized_capacity=4,
+        uniform_capacity_steps=16 * T, replay_ratio=1.0, sample_wait_s=0.05, persist=False)
+    spec = run_spec(config, OBS_DIM, ACT_DIM, -np.ones(ACT_DIM), np.ones(ACT_DIM))
+    bus = MemoryBus()
+    server = ReplayServer(config, spec, bus.session(), StopSignal())
+    yield server, bus
+    server.close()
+
+
+def acks_for(bus: MemoryBus, actor_id: int) -> list[Ack]:
+    key = Keys(RUN).ack(actor_id)
+    return [decode(data, Ack) for k, data in bus.puts if k == key]
+
+
+def send(bus: MemoryBus, message, actor_id: int = 3) -> None:
+    bus.session().put(Keys(RUN).traj(actor_id), encode(message))
+
+
+def test_key_expressions_match_as_zenohs():
+    assert matches("tpdeb/r/traj/*", "tpdeb/r/traj/3")
+    assert not matches("tpdeb/r/traj/*", "tpdeb/r/traj/3/x")
+    assert matches("tpdeb/r/stats/**", "tpdeb/r/stats/actor/1")
+    assert matches("tpdeb/r/**", "tpdeb/r")
+    assert not matches("tpdeb/r/ack/3", "tpdeb/r/ack/4")
+
+
+def test_a_fragment_is_acknowledged_once_ingested_and_a_resent_one_stored_once(replay):
+    server, bus = replay
+    send(bus, make_traj(seed=0))
+    send(bus, make_traj(seed=0))  # a copy while the first waits: one ack covers both
+    send(bus, make_traj(seed=1))
+    server.poll(0.0)
+    assert len(server.replay) == 2
+    assert sorted(int(s) for ack in acks_for(bus, 3) for s in ack.seqs) == [0, 1]
+    send(bus, make_traj(seed=0))  # resent after its ack: that ack may have been lost
+    server.poll(0.0)
+    assert len(server.replay) == 2  # stored once, acknowledged again
+    assert sorted(int(s) for ack in acks_for(bus, 3) for s in ack.seqs) == [0, 0, 1]
+    assert server.ledgers[3].duplicates == 2 and server.ledgers[3].ingested == 2
+
+
+def test_fragments_that_fail_their_checks_are_counted_and_never_acknowledged(replay):
+    server, bus = replay
+    bus.session().put(Keys(RUN).traj(3), b"\x93garbage")
+    send(bus, make_traj(seed=2, obs_dim=OBS_DIM + 1))  # the wrong shape for this run
+    send(bus, make_traj(seed=3), actor_id=4)  # carries actor 3's id on actor 4's key
+    server.poll(0.0)
+    assert len(server.replay) == 0 and not acks_for(bus, 3) and not acks_for(bus, 4)
+    assert sum(server.bad.values()) == 3 and server.bad["sender"] == 1
+
+
+def ask_for_a_batch(bus: MemoryBus, server: ReplayServer) -> list[SampleReply]:
+    """A learner's sample query, answered by the server's own loop."""
+    replies: list[SampleReply] = []
+    request = encode(SampleRequest(request_id=1, batch_size=2, beta=1.0))
+
+    def learner() -> None:
+        for reply in bus.session().get(Keys(RUN).sample, payload=request, timeout=5.0):
+            replies.append(decode(reply.ok.payload.to_bytes(), SampleReply, server.spec))
+
+    thread = threading.Thread(target=learner)
+    thread.start()
+    while thread.is_alive():
+        server.poll(0.01)
+    thread.join()
+    return replies
+
+
+def test_a_sample_request_before_enough_steps_gets_a_not_ready_reply(replay):
+    server, bus = replay
+    send(bus, make_traj(seed=0))  # one fragment; sampling starts at two
+    (reply,) = ask_for_a_batch(bus, server)
+    assert not reply.ready and "rate limiter" in reply.reason
+    send(bus, make_traj(seed=1))
+    (reply,) = ask_for_a_batch(bus, server)
+    assert reply.ready and reply.batch.obs.shape == (T + 1, 2, OBS_DIM)
+    assert set(reply.keys.tolist()) <= {0, 1} and reply.inserted_steps == 2 * T
+
+
+def test_the_outbox_holds_back_pressure_and_resends_what_is_not_acknowledged():
+    outbox = Outbox(capacity=2)
+    outbox.add(0, b"a", now=0.0)
+    outbox.add(1, b"b", now=0.5)
+    assert not outbox.wait_for_room(0.0)  # full: the actor waits instead of dropping
+    assert outbox.due(now=1.2, after_s=1.0) == [(0, b"a")]  # only what waited long enough
+    assert outbox.due(now=1.3, after_s=1.0) == []  # its clock restarted on the resend
+    outbox.ack([0, 7])  # an unknown seq (an ack of a duplicate) changes nothing
+    assert outbox.wait_for_room(0.0) and len(outbox) == 1 and outbox.acked == 1
+    outbox.make_all_due()  # the replay server came back: everything goes again
+    assert outbox.due(now=1.4, after_s=1.0) == [(1, b"b")]
