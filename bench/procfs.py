@@ -1,34 +1,32 @@
-"""What the benches read from /proc: the process tree, command lines, resident memory, and which
-TPDEB service a process is."""
+"""What the benches read about processes (through psutil): the process tree, command lines,
+resident memory, and which TPDEB service a process is."""
 
 from __future__ import annotations
 
 import os
 
+import psutil
+
 SERVICES = ("router", "replay", "learner", "actor", "link", "cluster")
 
 
-def proc_table() -> dict[int, tuple[int, int]]:
-    """pid -> (ppid, start time in clock ticks) of every live process."""
+def proc_table() -> dict[int, tuple[int, float]]:
+    """pid -> (ppid, start time) of every live process (zombies left out)."""
     table = {}
-    for entry in os.scandir("/proc"):
-        if not entry.name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{entry.name}/stat") as f:
-                stat = f.read()
-        except OSError:
-            continue
-        fields = stat[stat.rfind(")") + 2:].split()
-        if fields[0] == "Z":
-            continue
-        table[int(entry.name)] = (int(fields[1]), int(fields[19]))
+    for proc in psutil.process_iter(["ppid", "create_time", "status"]):
+        info = proc.info
+        if info["status"] != psutil.STATUS_ZOMBIE and info["ppid"] is not None:
+            table[proc.pid] = (info["ppid"], info["create_time"])
     return table
 
 
-def descendants(root: int, table: dict[int, tuple[int, int]] | None = None) -> list[int]:
+def descendants(root: int, table: dict[int, tuple[int, float]] | None = None) -> list[int]:
     """Every live process below `root` (not `root` itself)."""
-    table = proc_table() if table is None else table
+    if table is None:
+        try:
+            return [p.pid for p in psutil.Process(root).children(recursive=True)]
+        except psutil.Error:
+            return []
     children: dict[int, list[int]] = {}
     for pid, (ppid, _) in table.items():
         children.setdefault(ppid, []).append(pid)
@@ -42,21 +40,16 @@ def descendants(root: int, table: dict[int, tuple[int, int]] | None = None) -> l
 
 def cmdline(pid: int) -> list[str]:
     try:
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            return f.read().decode(errors="replace").split("\0")
-    except OSError:
+        return psutil.Process(pid).cmdline()
+    except psutil.Error:
         return []
 
 
 def rss_kib(pid: int) -> int | None:
     try:
-        with open(f"/proc/{pid}/status") as f:
-            for line in f:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1])
-    except OSError:
+        return psutil.Process(pid).memory_info().rss // 1024
+    except psutil.Error:
         return None
-    return None
 
 
 def service_name(argv: list[str]) -> str | None:
@@ -67,8 +60,8 @@ def service_name(argv: list[str]) -> str | None:
         if base.startswith("tpdeb-") and base[6:] in SERVICES:
             role = base[6:]
             break
-        if arg == "-m" and i + 1 < len(argv) and argv[i + 1].startswith("services."):
-            role = argv[i + 1].split(".", 1)[1]
+        if arg == "-m" and i + 1 < len(argv) and argv[i + 1].startswith("tpdeb.services."):
+            role = argv[i + 1].rsplit(".", 1)[1]
             break
     if role is None:
         return None
