@@ -129,7 +129,12 @@ class LearnerService:
         self.params_version = self.current_version = -1  # the encoded one, the latest one
         self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
         self.params_lock = threading.Lock()
-        s, k = session, self.keys
+        self._declare()
+
+    def _declare(self) -> None:
+        """Publishers, the parameters' queryable, the stats subscriber, the liveliness token
+        and the sample fetchers (not started)."""
+        s, k = self.session, self.keys
         # Monitors may subscribe; actors pull through params/latest instead (see
         # _answer_latest). Latest wins, so a congested link may drop one.
         self.params_publisher = declare_publisher(s, "params", k.params)
@@ -142,7 +147,7 @@ class LearnerService:
         self.fetch_cancel = zenoh.CancellationToken()
         self.fetchers = [threading.Thread(target=self._fetch_loop, args=(i,), daemon=True,
                                           name=f"fetch-{i}")
-                         for i in range(config.requests_in_flight)]
+                         for i in range(self.config.requests_in_flight)]
 
     # -- checkpoints
     def restore(self, path: Path, state: dict) -> int:

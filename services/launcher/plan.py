@@ -79,6 +79,7 @@ def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
 
 
 def make_plan(args: argparse.Namespace) -> Plan:
+    """The cluster file with the flags and the shell's variables on top, checked whole."""
     path = Path(args.config) if args.config else DEFAULT_FILE
     data = load_toml(path)
     unknown = set(data) - {"cluster", "train", "services", "link", "security"}
@@ -89,8 +90,30 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if set(cluster) - CLUSTER_KEYS:
         raise ConfigError(f"{path} [cluster]: unknown key(s) {sorted(set(cluster) - CLUSTER_KEYS)}"
                           f"; known: {sorted(CLUSTER_KEYS)}")
+    services = service_specs(data.get("services", {}), path, args.actors)
+    endpoint = args.endpoint or cluster.get("endpoint", "tcp/127.0.0.1:auto")
+    if endpoint.endswith(":auto"):
+        endpoint = f"{endpoint[:-len('auto')]}{free_port()}"
+    security = ClusterSecurity.from_section(
+        data.get("security", {}), {k: getattr(args, k, None) for k in SECURITY_KEYS}, str(path))
+    endpoint = security.endpoint(endpoint)
+    link = link_settings(data.get("link", {}), args, path)
+    link_endpoint = ""
+    if any(link.get(k, 0) for k in LINK_KEYS[:4]):  # the link forwards TLS bytes unchanged
+        link_endpoint = security.endpoint(f"tcp/127.0.0.1:{free_port()}")
+    return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
+                stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
+                start_timeout_s=float(cluster.get("start_timeout_s", 120)),
+                train=train_settings(data.get("train", {}), args),
+                services=start_order(services), source=str(path), link=link,
+                link_endpoint=link_endpoint,
+                restarts=RestartSettings.from_section(cluster, path), security=security)
+
+
+def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, ServiceSpec]:
+    """The [services.*] sections as specs, every role present once, `--actors` applied."""
     services = {}
-    for role, body in data.get("services", {}).items():
+    for role, body in sections.items():
         if role not in ROLES:
             raise ConfigError(f"{path}: unknown service {role!r}; services are {ROLES}")
         if set(body) - SERVICE_KEYS:
@@ -107,17 +130,21 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if services["router"].depends_on:
         raise ConfigError(f"{path} [services.router]: depends_on="
                           f"{services['router'].depends_on}: the router starts first; remove it")
-    if args.actors is not None:
-        services["actor"].replicas = args.actors
+    if actors is not None:
+        services["actor"].replicas = actors
     for spec in services.values():
         if spec.replicas < (1 if spec.role == "actor" else 0) or (
                 spec.role != "actor" and spec.replicas != 1):
             raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
                               "replay and the learner run once, actors at least once")
-    train = dict(data.get("train", {}))
-    # The shell's TPDEB_* training variables rank between the file and the flags, as for any
-    # service; resolved here once, so that train.toml is the whole training configuration and
-    # no child applies them again on top of a flag (see child_environment).
+    return services
+
+
+def train_settings(section: dict, args: argparse.Namespace) -> TrainConfig:
+    """[train] < the shell's TPDEB_* training variables < the flags and --set."""
+    train = dict(section)
+    # The variables are resolved here once, so that train.toml is the whole training
+    # configuration and no child applies them again on top of a flag (see child_environment).
     train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
                   for name, value in train_variables(os.environ).items()})
     overrides = {"env_id": args.env_id, "total_timesteps": args.total_timesteps,
@@ -132,25 +159,10 @@ def make_plan(args: argparse.Namespace) -> Plan:
     if set(train) - names:
         raise ConfigError(f"train setting(s) {sorted(set(train) - names)} do not exist "
                           "(tpdeb-train --help lists them)")
-    train_config = coerce_train(train)
-    if not train_config.run_dir:
-        train_config.run_dir = str(train_config.default_run_dir())
-    endpoint = args.endpoint or cluster.get("endpoint", "tcp/127.0.0.1:auto")
-    if endpoint.endswith(":auto"):
-        endpoint = f"{endpoint[:-len('auto')]}{free_port()}"
-    security = ClusterSecurity.from_section(
-        data.get("security", {}), {k: getattr(args, k, None) for k in SECURITY_KEYS}, str(path))
-    endpoint = security.endpoint(endpoint)
-    link = link_settings(data.get("link", {}), args, path)
-    link_endpoint = ""
-    if any(link.get(k, 0) for k in LINK_KEYS[:4]):  # the link forwards TLS bytes unchanged
-        link_endpoint = security.endpoint(f"tcp/127.0.0.1:{free_port()}")
-    return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
-                stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
-                start_timeout_s=float(cluster.get("start_timeout_s", 120)),
-                train=train_config, services=start_order(services), source=str(path),
-                link=link, link_endpoint=link_endpoint,
-                restarts=RestartSettings.from_section(cluster, path), security=security)
+    config = coerce_train(train)
+    if not config.run_dir:
+        config.run_dir = str(config.default_run_dir())
+    return config
 
 
 def train_variables(environ) -> dict[str, str]:
