@@ -7,7 +7,6 @@ from __future__ import annotations
 import os
 import signal
 import time
-import types
 
 import numpy as np
 import pytest
@@ -19,6 +18,7 @@ from tpdeb.protocol import Keys, Params, Stats, decode
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import LearnerServiceConfig
 from tpdeb.services.learner import LearnerService
+from tpdeb.services.net.memory import MemoryBus
 from tpdeb.services.net.session import StopSignal, open_session
 from tpdeb.services.net.wire import run_spec
 from tpdeb.services.store import checkpoint as ckpt
@@ -30,40 +30,16 @@ from tpdeb.tpdeb_core.model import ActorCritic
 ENV = "InvertedPendulum-v5"
 
 
-# -- a LearnerService without a network: the session only records what is published ----------
-class _Entity:
-    def __init__(self, log: list | None = None):
-        self.log = log
-        # a publisher whose puts the test records has a listener, as Zenoh would report it
-        self.matching_status = types.SimpleNamespace(matching=log is not None)
-
-    def put(self, data) -> None:
-        if self.log is not None:
-            self.log.append(data)
-
-    def undeclare(self) -> None:
-        pass
-
-
-class FakeSession:
+# -- a LearnerService on the in-memory bus, with a monitor recording its parameter puts ------
+class Watched:
     def __init__(self):
+        self.bus = MemoryBus()
         self.params: list[bytes] = []
-        self.keys = Keys("t")
+        self.bus.session().declare_subscriber(
+            Keys("t").params, lambda sample: self.params.append(sample.payload.to_bytes()))
 
-    def declare_publisher(self, key, **_):
-        return _Entity(self.params if str(key) == str(self.keys.params) else None)
-
-    def declare_queryable(self, *_args, **_kw):
-        return _Entity()
-
-    def declare_subscriber(self, *_args, **_kw):
-        return _Entity()
-
-    def liveliness(self):
-        return self
-
-    def declare_token(self, *_args):
-        return _Entity()
+    def session(self):
+        return self.bus.session()
 
     def published_versions(self) -> list[int]:
         return [decode(data, Params).version for data in self.params]
@@ -79,11 +55,11 @@ def spec_for(obs_dim=4, act_dim=1, env_id=ENV, hidden_sizes=(64, 64)):
 
 
 def service_for(run_dir, resume_from=None, spec=None,
-                **extra) -> tuple[LearnerService, FakeSession]:
-    session = FakeSession()
-    service = LearnerService(config_for(run_dir, **extra), spec or spec_for(), session,
+                **extra) -> tuple[LearnerService, Watched]:
+    watched = Watched()
+    service = LearnerService(config_for(run_dir, **extra), spec or spec_for(), watched.session(),
                              StopSignal(), resume_from)
-    return service, session
+    return service, watched
 
 
 def close(service: LearnerService) -> None:
