@@ -65,6 +65,7 @@ class Cluster:
                                        run_id=self.plan.run_id, connect=(self.plan.endpoint,))
         path = self.run_dir / "train.toml"
         path.write_text(to_toml(self.plan.train))
+        (self.run_dir / "router.toml").write_text(f"run_id = {json.dumps(self.plan.run_id)}\n")
         (self.run_dir / "cluster.json").write_text(json.dumps({
             "source": self.plan.source, "run_id": self.plan.run_id,
             "endpoint": self.plan.endpoint, "link": self.plan.link,
@@ -84,7 +85,10 @@ class Cluster:
         return users
 
     def argv(self, spec: ServiceSpec, train_file: Path, index: int) -> list[str]:
-        argv = [*resolve_command(spec.command), "--config", str(train_file),
+        # The router trains nothing: its file holds the run id only (router.toml beside
+        # train.toml), its flags its network and security settings.
+        config = train_file.with_name("router.toml") if spec.role == "router" else train_file
+        argv = [*resolve_command(spec.command), "--config", str(config),
                 "--run-id", self.plan.run_id]
         if spec.role == "router":
             argv += ["--listen", self.plan.endpoint, *self.plan.security.router_args()]

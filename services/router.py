@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.config.service import DEFAULT_ENDPOINT, ServiceConfig
+from tpdeb.services.config.service import DEFAULT_ENDPOINT, NetConfig
 from tpdeb.services.logs import setup_logging
 from tpdeb.services.net.security import access_control, read_auth_file
 from tpdeb.services.net.session import StopSignal, close_session, fail, open_for
@@ -24,7 +24,7 @@ log = logging.getLogger(PROG)
 
 
 @dataclass
-class RouterConfig(ServiceConfig):
+class RouterConfig(NetConfig):
     listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
     """Zenoh endpoints the router listens on (every service connects here)"""
     connect: tuple[str, ...] = ()

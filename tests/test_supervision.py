@@ -345,7 +345,7 @@ def start_cluster(procs, tmp_path, total_timesteps: int, actor_args: str = "[]")
 
 def service_pid(run_dir: Path, *words: str) -> int:
     """The pid of the cluster's service whose command line has all `words`."""
-    for pid in pids_with(str(run_dir / "train.toml")):
+    for pid in pids_with(str(run_dir / "train.toml")) + pids_with(str(run_dir / "router.toml")):
         with open(f"/proc/{pid}/cmdline", "rb") as f:
             argv = f.read().split(b"\0")
         text = " ".join(a.decode() for a in argv)

@@ -1,6 +1,8 @@
-"""One config dataclass per service. Each extends the training configuration, so a single TOML
-file (the cluster's `[train]` section, written to the run dir) configures every process alike,
-the way one config runs either in one process (`tpdeb-train`) or distributed."""
+"""The services' configurations. `NetConfig` is what every process on the network needs (run
+id, endpoints, security, stats, logging); the router holds only that. The replay server, the
+learner and the actors add the training configuration, so a single TOML file (the cluster's
+`[train]` section, written to the run dir) configures them alike, the way one config runs
+either in one process (`tpdeb-train`) or distributed."""
 
 from __future__ import annotations
 
@@ -17,7 +19,7 @@ _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 
 
 @dataclass
-class ServiceConfig(TrainConfig):
+class NetConfig:
     run_id: str = "default"
     """run identifier: every key expression lives under tpdeb/{run_id}/, so runs sharing a
     router never exchange data"""
@@ -54,7 +56,9 @@ class ServiceConfig(TrainConfig):
     checkpoints, TensorBoard)"""
 
     def __post_init__(self):
-        super().__post_init__()
+        more = getattr(super(), "__post_init__", None)  # TrainConfig's, in a ServiceConfig
+        if more is not None:
+            more()
         if not _RUN_ID.fullmatch(self.run_id):
             raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
         if self.log_level not in LEVELS:
@@ -67,6 +71,11 @@ class ServiceConfig(TrainConfig):
         # moves to an attribute that is not a field, so none of those copies carries it.
         if self.password:
             self.secret_password, self.password = self.password, ""
+
+
+@dataclass
+class ServiceConfig(NetConfig, TrainConfig):
+    """A service that trains or feeds training: the network settings and the training ones."""
 
 
 @dataclass
