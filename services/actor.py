@@ -171,6 +171,18 @@ class ActorService:
                               f"within {self.config.connect_timeout_s:g} s (is tpdeb-learner "
                               "running?)")
 
+    def ask_params(self) -> bool:
+        """One query for a version newer than ours, now (the long poll's, in the caller's
+        thread); what arrives is loaded at the next `refresh_params`."""
+        selector = f"{self.keys.params_latest}?after={self.policy_version}"
+        got = False
+        for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
+                                      cancellation_token=self.params_cancel):
+            if reply.ok is not None:
+                self._on_params(reply.ok)
+                got = True
+        return got
+
     def _pull_params(self) -> None:
         """Long-poll the learner for the next version: one request in flight, answered as soon
         as a version newer than ours exists, asked again when the loop wants newer ones (at its
@@ -179,14 +191,8 @@ class ActorService:
             if not self.params_wanted.wait(0.5):
                 continue
             self.params_wanted.clear()
-            selector = f"{self.keys.params_latest}?after={self.policy_version}"
-            got = False
             try:
-                for reply in self.session.get(selector, timeout=PARAMS_POLL_S,
-                                              cancellation_token=self.params_cancel):
-                    if reply.ok is not None:
-                        self._on_params(reply.ok)
-                        got = True
+                got = self.ask_params()
             except zenoh.ZError:
                 return  # the session is closing
             if not got:
@@ -253,6 +259,10 @@ class ActorService:
             # back-pressure: wait for acks, resend the lost, keep the parameters fresh
             self.resend_due(time.monotonic())
             self.refresh_params()
+        self.send_now(fragment)
+
+    def send_now(self, fragment) -> None:
+        """Encode, keep in the outbox until acknowledged, put (the caller made room)."""
         payload = encode(fragment_to_message(fragment, self.collector.policy.reward_scale(),
                                              self.incarnation),
                          self.config.trajectory_compression)

@@ -272,31 +272,38 @@ class LearnerService:
         request_id = slot
         while not self.stop:
             request_id += self.config.requests_in_flight
-            request = SampleRequest(request_id=request_id, batch_size=self.config.batch_fragments,
-                                    beta=self.beta())
-            got = False
-            for reply in self.session.get(self.keys.sample, payload=encode(request),
-                                          timeout=self.config.request_timeout_s,
-                                          cancellation_token=self.fetch_cancel):
-                if reply.ok is None:
-                    continue
-                try:
-                    batch = decode(reply.ok.payload.to_bytes(), SampleReply, self.spec,
-                                   self.config.max_message_bytes)
-                except DecodeError as exc:
-                    self.log_bad(exc.kind, f"dropped a bad sample reply ({exc})")
-                    continue
-                got = batch.ready
-                self.global_step = max(self.global_step, batch.inserted_steps)
-                if batch.ready:
-                    while not self.stop:
-                        try:
-                            self.batches.put(batch, timeout=0.1)
-                            break
-                        except queue.Full:
-                            pass
-            if not got:
+            batch = self.fetch(request_id)
+            if batch is None:
                 self.stop.wait(0.02)  # replay absent or rate-limited: do not spin
+                continue
+            while not self.stop:
+                try:
+                    self.batches.put(batch, timeout=0.1)
+                    break
+                except queue.Full:
+                    pass
+
+    def fetch(self, request_id: int) -> SampleReply | None:
+        """One sample request: the batch, or None when the replay had none to give (absent,
+        rate-limited) or its reply was bad."""
+        request = SampleRequest(request_id=request_id, batch_size=self.config.batch_fragments,
+                                beta=self.beta())
+        batch = None
+        for reply in self.session.get(self.keys.sample, payload=encode(request),
+                                      timeout=self.config.request_timeout_s,
+                                      cancellation_token=self.fetch_cancel):
+            if reply.ok is None:
+                continue
+            try:
+                got = decode(reply.ok.payload.to_bytes(), SampleReply, self.spec,
+                             self.config.max_message_bytes)
+            except DecodeError as exc:
+                self.log_bad(exc.kind, f"dropped a bad sample reply ({exc})")
+                continue
+            self.global_step = max(self.global_step, got.inserted_steps)
+            if got.ready:
+                batch = got
+        return batch
 
     # -- the loop
     def run(self) -> bool:

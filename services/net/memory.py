@@ -120,6 +120,9 @@ class MemoryBus:
     _watchers: list = field(default_factory=list)  # (pattern, callback)
     _lock: threading.RLock = field(default_factory=threading.RLock)
     puts: list = field(default_factory=list)  # (key, bytes), every put in order (for tests)
+    # Run while a query waits for its replies: in one thread (tpdeb-train) the answering
+    # services' loops must get their turn, or the query would wait for itself.
+    pump: Callable[[], None] | None = None
 
     def session(self) -> MemorySession:
         return MemorySession(self)
@@ -227,7 +230,11 @@ class MemorySession:
             if left <= 0:
                 return
             try:
-                reply = replies.get(timeout=min(left, 0.05))
+                if self.bus.pump is not None and replies.empty():
+                    self.bus.pump()
+                    reply = replies.get_nowait()
+                else:
+                    reply = replies.get(timeout=min(left, 0.05))
             except queue.Empty:
                 continue
             if reply is None:
