@@ -77,3 +77,19 @@ def test_an_empty_list_flag_clears_the_list():
     cfg = resolve(ReplayServiceConfig, ["--listen", "", "--connect", "tcp/127.0.0.1:7447"],
                   "tpdeb-replay", "test")
     assert cfg.listen == () and cfg.connect == ("tcp/127.0.0.1:7447",)
+
+
+def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first():
+    import dataclasses
+
+    from tpdeb.services.config import build_parser
+    from tpdeb.services.config.service import ActorServiceConfig
+    from tpdeb.services.config.train import TrainConfig
+    from tpdeb.tpdeb_core.loss_config import LossConfig
+
+    loss = {f.name for f in dataclasses.fields(LossConfig)}
+    assert loss <= {f.name for f in dataclasses.fields(TrainConfig)}
+    assert not loss & set(vars(TrainConfig)["__annotations__"])  # inherited, not repeated
+    flags = [action.dest for action in build_parser(ActorServiceConfig, "p", "")._actions]
+    assert flags.index("actor_id") < flags.index("run_id") < flags.index("env_id") \
+        < flags.index("learning_rate")

@@ -12,27 +12,48 @@ CLIP_ANCHORS = ("target", "behaviour")
 
 @dataclass
 class LossConfig:
+    """What the loss computes and how the optimiser steps (DESIGN §2), each setting declared and
+    documented once: configurations that train extend this class."""
+
     gamma: float = 0.99
+    """discount factor"""
     rho_bar: float = 1.0
+    """V-trace ρ̄ (truncation of the importance weight in the value target)"""
     c_bar: float = 1.0
+    """V-trace c̄ (trace cutting)"""
     rho_pg_bar: float = 1.0
+    """V-trace ρ̄ for the policy-gradient advantage"""
     rho_target_bar: float = 2.0
+    """IMPACT: clip of μ/π_target in the surrogate ratio"""
     clip_coef: float = 0.2
+    """surrogate clipping ε"""
     kl_coef: float = 0.01
-    kl_target: float = 0.0  # > 0: adapt kl_coef toward this KL(μ‖π_θ); 0: fixed coefficient
+    """λ_kl: weight of KL(μ ‖ π_θ) (0 switches the KL term off)"""
+    kl_target: float = 0.0
+    """if > 0, adapt kl_coef toward this KL value instead of keeping it fixed"""
     vf_coef: float = 0.5
+    """value loss coefficient"""
     ent_coef: float = 0.0
+    """entropy bonus coefficient"""
     max_grad_norm: float = 0.5
+    """gradient-norm clip"""
     tau: float = 0.05
+    """soft target-policy update rate per learner update"""
     learning_rate: float = 1e-3
+    """Adam learning rate"""
     adam_eps: float = 1e-5
+    """Adam epsilon"""
     norm_adv: bool = True
+    """normalise advantages per batch"""
     priority_mode: str = "trajectory"
+    """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
     priority_kappa: float = 0.0
-    # "target": IMPACT's surrogate, the ratio to π_θ̄ (TPDEB, IMPACT); "behaviour": PPO's ratio
-    # π_θ/μ, V-trace toward the current policy, no target policy (PPO+PER)
+    """weight of the fragment's mean |scaled return| added to its priority"""
     clip_anchor: str = "target"
-    vtrace_lambda: float = 1.0  # λ in the V-trace traces c_t = λ·min(c̄, π/μ) (1: plain V-trace)
+    """target: the surrogate's ratio is taken to the target policy (IMPACT, TPDEB) | behaviour:
+    PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
+    vtrace_lambda: float = 1.0
+    """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
 
     def __post_init__(self):
         if self.priority_mode not in PRIORITY_MODES:

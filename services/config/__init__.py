@@ -106,7 +106,7 @@ def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
         prog=prog, description=description,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--config", help="TOML file with any of the settings below")
-    for f in dataclasses.fields(cls):
+    for f in _fields_derived_first(cls):
         kind, _ = _field_type(cls, f.name)
         flag = "--" + f.name.replace("_", "-")
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
@@ -122,6 +122,16 @@ def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
                                 metavar=kind.__name__.upper(),
                                 help=f"{help_text} (default: {default})")
     return parser
+
+
+def _fields_derived_first(cls) -> list:
+    """The fields in the order --help shows them: the class's own first, then each base's (a
+    service's settings before the network's, the training's before the loss's)."""
+    owner: dict[str, int] = {}
+    for rank, klass in enumerate(cls.__mro__):
+        for name in vars(klass).get("__annotations__", {}):
+            owner.setdefault(name, rank)
+    return sorted(dataclasses.fields(cls), key=lambda f: owner.get(f.name, len(cls.__mro__)))
 
 
 def resolve(cls, argv: list[str] | None, prog: str, description: str, section: str | None = None):

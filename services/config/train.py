@@ -20,7 +20,7 @@ ALGOS = ("tpdeb", "impact", "ppo-per")
 
 
 @dataclass
-class TrainConfig:
+class TrainConfig(LossConfig):
     exp_name: str = "tpdeb"
     """name of this experiment, part of the default run directory"""
     algo: str = "tpdeb"
@@ -39,12 +39,8 @@ class TrainConfig:
     """environments stepped together by an actor"""
     fragment_len: int = 64
     """T: steps per fragment (a replay item)"""
-    learning_rate: float = 1e-3
-    """Adam learning rate"""
     anneal_lr: bool = False
     """anneal the learning rate linearly to 0 over total_timesteps"""
-    adam_eps: float = 1e-5
-    """Adam epsilon"""
     batch_fragments: int = 8
     """fragments per learner batch (B); a batch holds B·T steps"""
     replay_ratio: float = 16.0
@@ -63,44 +59,9 @@ class TrainConfig:
     """priority exponent: sampling ∝ priority^alpha"""
     beta_start: float = 0.4
     """initial importance-weight exponent, annealed linearly to 1 over training"""
-    priority_mode: str = "trajectory"
-    """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
-    priority_kappa: float = 0.0
-    """weight of the fragment's mean |scaled return| added to its priority"""
     replay_retention: str = "priority"
     """priority: a full prioritized buffer gives up its lowest-priority fragment (TPDEB) | fifo:
     its oldest (a FIFO still sampled by priority, the PPO+PER baseline)"""
-    gamma: float = 0.99
-    """discount factor"""
-    rho_bar: float = 1.0
-    """V-trace ρ̄ (truncation of the importance weight in the value target)"""
-    c_bar: float = 1.0
-    """V-trace c̄ (trace cutting)"""
-    rho_pg_bar: float = 1.0
-    """V-trace ρ̄ for the policy-gradient advantage"""
-    rho_target_bar: float = 2.0
-    """IMPACT: clip of μ/π_target in the surrogate ratio"""
-    clip_anchor: str = "target"
-    """target: the surrogate's ratio is taken to the target policy (IMPACT, TPDEB) | behaviour:
-    PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
-    vtrace_lambda: float = 1.0
-    """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
-    clip_coef: float = 0.2
-    """surrogate clipping ε"""
-    kl_coef: float = 0.01
-    """λ_kl: weight of KL(μ ‖ π_θ) (0 switches the KL term off)"""
-    kl_target: float = 0.0
-    """if > 0, adapt kl_coef toward this KL value instead of keeping it fixed"""
-    vf_coef: float = 0.5
-    """value loss coefficient"""
-    ent_coef: float = 0.0
-    """entropy bonus coefficient"""
-    max_grad_norm: float = 0.5
-    """gradient-norm clip"""
-    tau: float = 0.05
-    """soft target-policy update rate per learner update"""
-    norm_adv: bool = True
-    """normalise advantages per batch"""
     hidden_sizes: tuple[int, ...] = (64, 64)
     """hidden layer sizes of the policy and value MLPs"""
     init_log_std: float = 0.0
