@@ -60,8 +60,10 @@ class SerialRunner:
             self.bus.session(), self.stop)
         self.replay = ReplayServer(ReplayServiceConfig(**settings, persist=False), spec,
                                    self.bus.session(), self.stop)
-        self.actor = ActorService(ActorServiceConfig(**settings, actor_id=0), spec, envs,
-                                  self.bus.session(), self.stop)
+        acting = {f.name for f in dataclasses.fields(ActorServiceConfig)}
+        self.actor = ActorService(
+            ActorServiceConfig(**{k: v for k, v in settings.items() if k in acting}, actor_id=0),
+            spec, envs, self.bus.session(), self.stop)
         self.bus.pump = self._pump
         self.requests = 0
 

@@ -83,13 +83,40 @@ def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first
     import dataclasses
 
     from tpdeb.services.config import build_parser
-    from tpdeb.services.config.service import ActorServiceConfig
+    from tpdeb.services.config.service import ActorServiceConfig, LearnerServiceConfig
     from tpdeb.services.config.train import TrainConfig
+    from tpdeb.services.router import RouterConfig
     from tpdeb.tpdeb_core.loss_config import LossConfig
 
     loss = {f.name for f in dataclasses.fields(LossConfig)}
     assert loss <= {f.name for f in dataclasses.fields(TrainConfig)}
     assert not loss & set(vars(TrainConfig)["__annotations__"])  # inherited, not repeated
-    flags = [action.dest for action in build_parser(ActorServiceConfig, "p", "")._actions]
-    assert flags.index("actor_id") < flags.index("run_id") < flags.index("env_id") \
+    flags = [action.dest for action in build_parser(LearnerServiceConfig, "p", "")._actions]
+    assert flags.index("requests_in_flight") < flags.index("run_id") < flags.index("env_id") \
         < flags.index("learning_rate")
+    # each service holds what it uses: the router no training setting, the actor none of the
+    # replay's, the loss's or the optimiser's
+    training = {f.name for f in dataclasses.fields(TrainConfig)}
+    assert not training & {f.name for f in dataclasses.fields(RouterConfig)}
+    actor = {f.name for f in dataclasses.fields(ActorServiceConfig)}
+    assert actor & training == {"exp_name", "algo", "preset", "env_id", "seed", "total_timesteps",
+                                "run_dir", "log_interval_s", "num_envs",
+                                "trajectory_compression"}
+
+
+def test_a_service_reads_a_shared_train_file_and_takes_what_it_uses(tmp_path):
+    from tpdeb.services.config.service import ActorServiceConfig
+
+    path = tmp_path / "train.toml"
+    path.write_text(to_toml(TrainConfig(num_envs=3, learning_rate=3e-4)))
+    actor = resolve(ActorServiceConfig, ["--config", str(path)], "p", "")
+    assert actor.num_envs == 3 and not hasattr(actor, "learning_rate")
+    path.write_text("num_envs = 3\nlearning_rat = 0.1\n")  # a typo is still refused
+    with pytest.raises(ConfigError, match="unknown setting 'learning_rat'"):
+        resolve(ActorServiceConfig, ["--config", str(path)], "p", "")
+    # the same command line for every service: the actor passes over the learner's flags
+    actor = resolve(ActorServiceConfig, ["--fragment-len", "32", "--anneal-lr",
+                                         "--hidden-sizes", "8", "8", "--num-envs", "2"], "p", "")
+    assert actor.num_envs == 2
+    with pytest.raises(SystemExit):  # but not a misspelt one
+        resolve(ActorServiceConfig, ["--fragment-lenn", "32"], "p", "")

@@ -121,7 +121,23 @@ def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
             parser.add_argument(flag, type=str, default=argparse.SUPPRESS,
                                 metavar=kind.__name__.upper(),
                                 help=f"{help_text} (default: {default})")
+    # Other services' training settings are accepted and passed over (not listed): the same
+    # command line, like the same train.toml, can be given to every service of a run.
+    names = {f.name for f in dataclasses.fields(cls)}
+    for name in sorted(training_names() - names) if "run_id" in names else ():
+        parser.add_argument("--" + name.replace("_", "-"), nargs="*", default=argparse.SUPPRESS,
+                            dest=f"{_OTHERS}{name}", help=argparse.SUPPRESS)
     return parser
+
+
+_OTHERS = "other service's "  # the dest prefix of the flags a service passes over
+
+
+def training_names() -> set[str]:
+    """Every training setting: a file (train.toml) may hold those a service does not use."""
+    from tpdeb.services.config.train import TrainConfig
+
+    return {f.name for f in dataclasses.fields(TrainConfig)}
 
 
 def _fields_derived_first(cls) -> list:
@@ -137,15 +153,17 @@ def _fields_derived_first(cls) -> list:
 def resolve(cls, argv: list[str] | None, prog: str, description: str, section: str | None = None):
     """Parse argv into a `cls` instance with the documented precedence."""
     parser = build_parser(cls, prog, description)
-    args = vars(parser.parse_args(argv))
+    args = {k: v for k, v in vars(parser.parse_args(argv)).items()
+            if not k.startswith(_OTHERS)}
     names = {f.name for f in dataclasses.fields(cls)}
     values: dict = {}
     config_path = args.pop("config", None)
     if config_path:
+        others = training_names()
         for key, value in load_toml(config_path, section).items():
             key = key.replace("-", "_")
             if key not in names:
-                if isinstance(value, dict):  # other services' sections
+                if isinstance(value, dict) or key in others:  # other services' settings
                     continue
                 raise ConfigError(f"--config {config_path}: unknown setting {key!r}")
             values[key] = coerce(cls, key, value, f"--config {config_path}")

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from tpdeb.services.config import ConfigError, coerce, load_toml
+from tpdeb.services.config import ConfigError, coerce, load_toml, training_names
 
 PRESETS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "presets"
 # Settings that say which run this is, not how to learn: never part of a preset.
@@ -59,15 +59,18 @@ def preset_path(env_id: str, choice: str) -> Path | None:
 
 
 def load_preset(cls, path: Path) -> dict:
-    names = {f.name for f in dataclasses.fields(cls)}
+    """The preset's values for `cls`'s fields (those of other services are left out; a key
+    that is no training setting at all is refused)."""
+    names, known = {f.name for f in dataclasses.fields(cls)}, training_names()
     values = {}
     for key, value in load_toml(path).items():
         key = key.replace("-", "_")
-        if key in RUN_IDENTITY or key not in names:
+        if key in RUN_IDENTITY or key not in known:
             what = "says which run this is" if key in RUN_IDENTITY else "is not a setting"
             raise ConfigError(f"preset {path}: {key!r} {what}; a preset holds training "
                               "settings only")
-        values[key] = coerce(cls, key, value, f"preset {path}")
+        if key in names:
+            values[key] = coerce(cls, key, value, f"preset {path}")
     return values
 
 
@@ -83,7 +86,10 @@ def layer(cls, user: dict) -> dict:
     algo = values.get("algo", defaults["algo"])
     if algo not in ALGORITHMS:
         raise ConfigError(f"algo={algo!r}: must be one of {', '.join(ALGORITHMS)}")
+    names = {f.name for f in dataclasses.fields(cls)}
     for key, fixed in ALGORITHMS[algo]({**defaults, **values}).items():
+        if key not in names:
+            continue  # a setting of another service
         if key in user and user[key] != fixed:
             raise ConfigError(f"algo={algo} fixes {key}={fixed!r}, but {key}={user[key]!r} was "
                               f"given: drop that setting (or use --algo tpdeb to vary it)")

@@ -10,7 +10,7 @@ import re
 from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.config.train import ActingSettings, RunSettings, TrainConfig
 from tpdeb.services.logs import LEVELS
 from tpdeb.services.net.security import check_settings
 
@@ -142,7 +142,10 @@ class LearnerServiceConfig(ServiceConfig):
 
 
 @dataclass
-class ActorServiceConfig(ServiceConfig):
+class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
+    """An actor's settings: the network's, the run's and how it collects; no replay, loss or
+    optimiser setting (what it needs of those comes in the run spec)."""
+
     actor_id: int = 0
     """this actor's id (unique in the run): its key is traj/{actor_id}, its envs' seeds
     seed + 1000·actor_id + i"""

@@ -20,7 +20,9 @@ ALGOS = ("tpdeb", "impact", "ppo-per")
 
 
 @dataclass
-class TrainConfig(LossConfig):
+class RunSettings:
+    """Which run this is: what every process that trains or acts for it holds."""
+
     exp_name: str = "tpdeb"
     """name of this experiment, part of the default run directory"""
     algo: str = "tpdeb"
@@ -35,8 +37,56 @@ class TrainConfig(LossConfig):
     """seed of torch, numpy and every environment (env i of actor a gets seed + 1000 a + i)"""
     total_timesteps: int = 1_000_000
     """environment steps to train for"""
+    run_dir: str = ""
+    """run directory; empty means runs/{env_id}__{exp_name}__{seed}__{unix time}"""
+    log_interval_s: float = 5.0
+    """seconds between progress lines"""
+
+    def __post_init__(self):
+        _chain(RunSettings, self)
+        if self.total_timesteps < 1:
+            raise ConfigError(f"total_timesteps={self.total_timesteps!r}: must be ≥ 1")
+        if self.algo not in ALGOS:
+            raise ConfigError(f"algo={self.algo!r}: must be one of {', '.join(ALGOS)}")
+
+    def default_run_dir(self) -> Path:
+        if self.run_dir:
+            return Path(self.run_dir)
+        return Path("runs") / f"{self.env_id}__{self.exp_name}__{self.seed}__{int(time.time())}"
+
+
+@dataclass
+class ActingSettings:
+    """How an actor collects: what it holds besides the run's identity (the fragment length,
+    the networks and γ come to it in the run spec)."""
+
     num_envs: int = 8
     """environments stepped together by an actor"""
+    trajectory_compression: str = "none"
+    """none | zstd: lossless compression of the fragments actors send"""
+
+    def __post_init__(self):
+        _chain(ActingSettings, self)
+        if self.num_envs < 1:
+            raise ConfigError(f"num_envs={self.num_envs!r}: must be ≥ 1")
+        if self.trajectory_compression not in ("none", "zstd"):
+            raise ConfigError(f"trajectory_compression={self.trajectory_compression!r}: must be "
+                              "none or zstd")
+
+
+def _chain(cls, obj) -> None:
+    """The next `__post_init__` after `cls`'s in `obj`'s classes (the groups check in turn)."""
+    more = getattr(super(cls, obj), "__post_init__", None)
+    if more is not None:
+        more()
+
+
+@dataclass
+class TrainConfig(RunSettings, ActingSettings, LossConfig):
+    """Everything a training run is set by: the run, acting, the replay, the networks, the loss
+    and the optimiser (the single-process runner, the learner and the replay server hold it
+    whole)."""
+
     fragment_len: int = 64
     """T: steps per fragment (a replay item)"""
     anneal_lr: bool = False
@@ -73,20 +123,16 @@ class TrainConfig(LossConfig):
     params_dtype: str = "float32"
     """float32 | float16: precision of the weights broadcast to the actors (normaliser
     statistics always travel in float64)"""
-    trajectory_compression: str = "none"
-    """none | zstd: lossless compression of the fragments actors send"""
     torch_threads: int = 1
     """torch intra-op threads (1 leaves the other core to the environments)"""
-    run_dir: str = ""
-    """run directory; empty means runs/{env_id}__{exp_name}__{seed}__{unix time}"""
-    log_interval_s: float = 5.0
-    """seconds between progress lines"""
 
     def __post_init__(self):
         self.hidden_sizes = tuple(self.hidden_sizes)
+        try:  # the groups' checks; the loss's raise ValueError
+            super().__post_init__()
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         checks = [
-            (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
-            (self.num_envs >= 1, "num_envs", "must be ≥ 1"),
             (self.fragment_len >= 2, "fragment_len", "must be ≥ 2"),
             (self.batch_fragments >= 1, "batch_fragments", "must be ≥ 1"),
             (self.learning_rate > 0, "learning_rate", "must be > 0"),
@@ -94,7 +140,6 @@ class TrainConfig(LossConfig):
             (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
             (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
             (self.alpha >= 0.0, "alpha", "must be ≥ 0"),
-            (self.algo in ALGOS, "algo", f"must be one of {', '.join(ALGOS)}"),
             (self.replay_retention in RETENTIONS, "replay_retention",
              f"must be one of {', '.join(RETENTIONS)}"),
             (self.priority_mode in PRIORITY_MODES, "priority_mode",
@@ -103,8 +148,6 @@ class TrainConfig(LossConfig):
             (self.params_publish_interval >= 1, "params_publish_interval", "must be ≥ 1"),
             (self.params_dtype in ("float32", "float16"), "params_dtype",
              "must be float32 or float16"),
-            (self.trajectory_compression in ("none", "zstd"), "trajectory_compression",
-             "must be none or zstd"),
             (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
              "needs at least one positive layer size"),
         ]
@@ -152,7 +195,3 @@ class TrainConfig(LossConfig):
             alpha=self.alpha, seed=self.seed, priority_mode=self.priority_mode,
             retention=self.replay_retention)
 
-    def default_run_dir(self) -> Path:
-        if self.run_dir:
-            return Path(self.run_dir)
-        return Path("runs") / f"{self.env_id}__{self.exp_name}__{self.seed}__{int(time.time())}"
