@@ -356,7 +356,11 @@ class ReplayServer:
         return started_write
 
     def _load_state(self, saved: dict) -> None:
-        _check_saved(saved)
+        try:
+            _check_saved(saved)
+        except ConfigError as exc:
+            raise ConfigError(f"{exc}: the run dir's replay state is damaged or not TPDEB's; "
+                              "use another --run-dir, or --restore never") from None
         if saved.get("format") != SNAPSHOT_FORMAT:
             raise ConfigError(f"the replay snapshot in the run dir has format "
                               f"{saved.get('format')!r}, this version reads {SNAPSHOT_FORMAT}: "

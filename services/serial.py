@@ -50,20 +50,22 @@ class SerialRunner:
         torch.set_num_threads(config.torch_threads)
         self.run_dir = config.default_run_dir()
         settings = {**dataclasses.asdict(config), "run_dir": str(self.run_dir), "run_id": RUN_ID}
+
+        def config_of(cls, **more):  # each service's config: the settings it holds
+            names = {f.name for f in dataclasses.fields(cls)}
+            return cls(**{k: v for k, v in settings.items() if k in names}, **more)
+
         self.stop = StopSignal()
         self.bus = MemoryBus()
         envs = make_vector_env(config.env_id, config.num_envs)
         spec = run_spec(config, *space_dims(envs))
         # The learner first: it seeds torch and numpy as its process does.
-        self.learner = LearnerService(
-            LearnerServiceConfig(**settings, checkpoint_interval_s=0.0), spec,
-            self.bus.session(), self.stop)
-        self.replay = ReplayServer(ReplayServiceConfig(**settings, persist=False), spec,
+        self.learner = LearnerService(config_of(LearnerServiceConfig, checkpoint_interval_s=0.0),
+                                      spec, self.bus.session(), self.stop)
+        self.replay = ReplayServer(config_of(ReplayServiceConfig, persist=False), spec,
                                    self.bus.session(), self.stop)
-        acting = {f.name for f in dataclasses.fields(ActorServiceConfig)}
-        self.actor = ActorService(
-            ActorServiceConfig(**{k: v for k, v in settings.items() if k in acting}, actor_id=0),
-            spec, envs, self.bus.session(), self.stop)
+        self.actor = ActorService(config_of(ActorServiceConfig, actor_id=0), spec, envs,
+                                  self.bus.session(), self.stop)
         self.bus.pump = self._pump
         self.requests = 0
 

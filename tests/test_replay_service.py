@@ -29,6 +29,8 @@ def replay():
         uniform_capacity_steps=16 * T, replay_ratio=1.0, sample_wait_s=0.05, persist=False)
     spec = run_spec(config, OBS_DIM, ACT_DIM, -np.ones(ACT_DIM), np.ones(ACT_DIM))
     bus = MemoryBus()
+    bus.heard = []  # every ack put, as an actor's subscriber receives it
+    bus.session().declare_subscriber(Keys(RUN).ack_all, bus.heard.append)
     server = ReplayServer(config, spec, bus.session(), StopSignal())
     yield server, bus
     server.close()
@@ -36,7 +38,7 @@ def replay():
 
 def acks_for(bus: MemoryBus, actor_id: int) -> list[Ack]:
     key = Keys(RUN).ack(actor_id)
-    return [decode(data, Ack) for k, data in bus.puts if k == key]
+    return [decode(s.payload.to_bytes(), Ack) for s in bus.heard if s.key_expr == key]
 
 
 def send(bus: MemoryBus, message, actor_id: int = 3) -> None:

@@ -10,7 +10,12 @@ import re
 from dataclasses import dataclass
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.config.train import ActingSettings, RunSettings, TrainConfig
+from tpdeb.services.config.train import (
+    ActingSettings,
+    RunSettings,
+    TrainConfig,
+    chain_post_init,
+)
 from tpdeb.services.logs import LEVELS
 from tpdeb.services.net.security import check_settings
 
@@ -56,9 +61,7 @@ class NetConfig:
     checkpoints, TensorBoard)"""
 
     def __post_init__(self):
-        more = getattr(super(), "__post_init__", None)  # TrainConfig's, in a ServiceConfig
-        if more is not None:
-            more()
+        chain_post_init(NetConfig, self)  # the training groups', in a ServiceConfig
         if not _RUN_ID.fullmatch(self.run_id):
             raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
         if self.log_level not in LEVELS:

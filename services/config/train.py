@@ -43,7 +43,7 @@ class RunSettings:
     """seconds between progress lines"""
 
     def __post_init__(self):
-        _chain(RunSettings, self)
+        chain_post_init(RunSettings, self)
         if self.total_timesteps < 1:
             raise ConfigError(f"total_timesteps={self.total_timesteps!r}: must be ≥ 1")
         if self.algo not in ALGOS:
@@ -66,7 +66,7 @@ class ActingSettings:
     """none | zstd: lossless compression of the fragments actors send"""
 
     def __post_init__(self):
-        _chain(ActingSettings, self)
+        chain_post_init(ActingSettings, self)
         if self.num_envs < 1:
             raise ConfigError(f"num_envs={self.num_envs!r}: must be ≥ 1")
         if self.trajectory_compression not in ("none", "zstd"):
@@ -74,7 +74,7 @@ class ActingSettings:
                               "none or zstd")
 
 
-def _chain(cls, obj) -> None:
+def chain_post_init(cls, obj) -> None:
     """The next `__post_init__` after `cls`'s in `obj`'s classes (the groups check in turn)."""
     more = getattr(super(cls, obj), "__post_init__", None)
     if more is not None:
@@ -158,7 +158,6 @@ class TrainConfig(RunSettings, ActingSettings, LossConfig):
             raise ConfigError(
                 f"uniform_capacity_steps={self.uniform_capacity_steps} cannot hold one fragment "
                 f"of fragment_len={self.fragment_len} steps: raise it")
-        self.loss_config()  # validates gamma, tau, ...
         self.rate_limiter()  # refuses deadlocking replay-ratio settings
 
     def loss_config(self) -> LossConfig:

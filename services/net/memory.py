@@ -119,7 +119,6 @@ class MemoryBus:
     _tokens: dict = field(default_factory=dict)  # key -> count
     _watchers: list = field(default_factory=list)  # (pattern, callback)
     _lock: threading.RLock = field(default_factory=threading.RLock)
-    puts: list = field(default_factory=list)  # (key, bytes), every put in order (for tests)
     # Run while a query waits for its replies: in one thread (tpdeb-train) the answering
     # services' loops must get their turn, or the query would wait for itself.
     pump: Callable[[], None] | None = None
@@ -133,7 +132,6 @@ class MemoryBus:
 
     def put(self, key: str, data: bytes) -> None:
         with self._lock:
-            self.puts.append((key, bytes(data)))
             targets = [cb for pattern, cb in self._subscribers if matches(pattern, key)]
         for callback in targets:
             callback(MemorySample(key, _Bytes(data)))
@@ -197,7 +195,6 @@ class MemorySession:
 
     def __init__(self, bus: MemoryBus):
         self.bus = bus
-        self.closed = False
 
     def declare_publisher(self, key: str, **options) -> MemoryPublisher:
         return MemoryPublisher(self.bus, str(key), options)
@@ -243,4 +240,4 @@ class MemorySession:
                 yield reply
 
     def close(self) -> None:
-        self.closed = True
+        """Nothing to release: the bus lives as long as its participants."""
