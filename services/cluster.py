@@ -1,11 +1,12 @@
 """`tpdeb-cluster`: a compose-style launcher for the whole run on one machine (DESIGN §5).
 
-Reads a cluster file (`deploy/local.toml`), writes the resolved training config into the run
-dir, starts router → replay → learner → actors as separate processes in dependency order (each
-waits for what it depends on to answer), prefixes and saves their logs, shows a live progress
-line from the services' stats and liveliness tokens, restarts crashed services by their restart
-policy (stopping the run on a crash loop), and stops everything in reverse order at the end or
-on Ctrl-C. The learner ends the run: when it exits 0 the others stop on its stop message.
+Reads a cluster file (`deploy/local.toml`), resolves each service's whole configuration once
+into the run dir (`config/{name}.toml`, what the service runs by), starts router → replay →
+learner → actors as separate processes in dependency order (each waits for what it depends on
+to answer), prefixes and saves their logs, shows a live progress line from the services' stats
+and liveliness tokens, restarts crashed services by their restart policy (stopping the run on a
+crash loop), and stops everything in reverse order at the end or on Ctrl-C. The learner ends
+the run: when it exits 0 the others stop on its stop message.
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ from pathlib import Path
 import zenoh
 
 from tpdeb.protocol import Control, DecodeError, Keys, decode
-from tpdeb.services.config import ConfigError, to_toml
+from tpdeb.services.config import ConfigError, resolve, to_toml
 from tpdeb.services.config.presets import shown
-from tpdeb.services.config.service import ServiceConfig
+from tpdeb.services.config.service import SERVICE_CONFIGS
 from tpdeb.services.envs import make_vector_env
 from tpdeb.services.launcher import PROG
 from tpdeb.services.launcher.child import Child, RunEnded, resolve_command
@@ -37,6 +38,7 @@ from tpdeb.services.launcher.plan import (
     ServiceSpec,
     child_environment,
     make_plan,
+    resolved_environment,
 )
 from tpdeb.services.launcher.restart import RestartTracker
 from tpdeb.services.launcher.status import Display, Health
@@ -55,17 +57,19 @@ class Cluster:
         self.session = None
         self.interrupted = False
 
-    def write_run_dir(self) -> Path:
+    def write_run_dir(self) -> None:
+        """The run dir's logs, security files, train.toml and every child's configuration,
+        resolved before any process starts (a bad setting stops the launch, naming it)."""
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         if self.plan.security.enabled:
             host = self.plan.endpoint.partition("/")[2].rpartition(":")[0].strip("[]")
             self.plan.security.prepare(self.run_dir / "security", self.users(),
                                        [host, "127.0.0.1", "localhost"])
-        service_config = ServiceConfig(**dataclasses.asdict(self.plan.train),
-                                       run_id=self.plan.run_id, connect=(self.plan.endpoint,))
-        path = self.run_dir / "train.toml"
-        path.write_text(to_toml(self.plan.train))
-        (self.run_dir / "router.toml").write_text(f"run_id = {json.dumps(self.plan.run_id)}\n")
+        train_file = self.run_dir / "train.toml"
+        train_file.write_text(to_toml(self.plan.train))
+        (self.run_dir / "config").mkdir(exist_ok=True)
+        self.slots = [self.slot(spec, i, train_file)
+                      for spec in self.plan.services for i in range(spec.replicas)]
         (self.run_dir / "cluster.json").write_text(json.dumps({
             "source": self.plan.source, "run_id": self.plan.run_id,
             "endpoint": self.plan.endpoint, "link": self.plan.link,
@@ -74,8 +78,31 @@ class Cluster:
                          for s in self.plan.services],
             "restarts": dataclasses.asdict(self.plan.restarts),
             "security": self.plan.security.summary(),
-            "train": dataclasses.asdict(service_config)}, indent=2))
-        return path
+            "train": dataclasses.asdict(self.plan.train)}, indent=2))
+
+    def slot(self, spec: ServiceSpec, index: int, train_file: Path) -> Child:
+        """A service process, its configuration resolved whole: train.toml, the network flags
+        the cluster gives it, its `args` and `env` and the shell's TPDEB_* variables, in the
+        services' own precedence. It starts with that file alone, so what the run dir records
+        is what runs, and a restart runs the same."""
+        name = spec.role if spec.replicas == 1 else f"{spec.role}-{index}"
+        env = child_environment(os.environ, {k: str(v) for k, v in spec.env.items()},
+                                self.plan.security.env(user_of(spec.role, index)))
+        try:
+            config = resolve(SERVICE_CONFIGS[spec.role],
+                             ["--config", str(train_file), *self.flags(spec, index)],
+                             f"{spec.command} ([services.{spec.role}] args)", "", environ=env)
+        except SystemExit:  # argparse has said which flag it does not know
+            raise ConfigError(f"[services.{spec.role}] args {spec.args}: not all are flags of "
+                              f"{spec.command} ({spec.command} --help lists them)") from None
+        path = self.run_dir / "config" / f"{name}.toml"
+        path.write_text(to_toml(config))
+        return Child(
+            name, spec.role, [*resolve_command(spec.command), "--config", str(path)],
+            resolved_environment(env), self.run_dir / "logs" / f"{name}.log",
+            self.display.echo, RestartTracker(spec.restart, self.plan.restarts),
+            ident=None if spec.role == "router" else str(index),
+            has_token=spec.role != "router", stats_interval_s=config.stats_interval_s)
 
     def users(self) -> list[str]:
         """One user per process that opens a session (access control knows them by role)."""
@@ -84,12 +111,10 @@ class Cluster:
             users += [user_of(spec.role, i) for i in range(spec.replicas) if spec.role != "router"]
         return users
 
-    def argv(self, spec: ServiceSpec, train_file: Path, index: int) -> list[str]:
-        # The router trains nothing: its file holds the run id only (router.toml beside
-        # train.toml), its flags its network and security settings.
-        config = train_file.with_name("router.toml") if spec.role == "router" else train_file
-        argv = [*resolve_command(spec.command), "--config", str(config),
-                "--run-id", self.plan.run_id]
+    def flags(self, spec: ServiceSpec, index: int) -> list[str]:
+        """What the cluster sets for a service: the run id, its network and its security (the
+        router), the actor's id; then the service's own `args`."""
+        argv = ["--run-id", self.plan.run_id]
         if spec.role == "router":
             argv += ["--listen", self.plan.endpoint, *self.plan.security.router_args()]
         elif spec.role == "replay":
@@ -120,8 +145,12 @@ class Cluster:
         return argv
 
     def run(self) -> int:
-        train_file = self.write_run_dir()
         say = self.display.echo
+        try:
+            self.write_run_dir()
+        except ConfigError as exc:
+            say(f"[{PROG}] error: {exc}")
+            return 2
         say(f"[{PROG}] run {self.plan.run_id}: {self.plan.train.env_id}, "
             f"{self.plan.train.total_timesteps:,} steps, seed {self.plan.train.seed}; "
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
@@ -129,7 +158,7 @@ class Cluster:
         keys = Keys(self.plan.run_id)
         try:
             router, *others = self.plan.services
-            self.add(router, train_file, 0)
+            self.start(self.slots[0])
             self.wait_until(lambda: self.connect(keys), "router")
             # The rest in dependency order without waiting in between: each service waits for
             # what it needs (the run spec, the first parameters), so their slow imports
@@ -137,9 +166,9 @@ class Cluster:
             for spec in others:
                 if spec.role == "actor" and self.plan.link_endpoint:
                     self.add_link(router)
-                for i in range(spec.replicas):
+                for slot in (c for c in self.slots if c.role == spec.role):
                     if not self.stopping.is_set():
-                        self.add(spec, train_file, i)
+                        self.start(slot)
             self.wait_until(lambda: fetch_spec(self.session, keys, 1.0) is not None, "replay")
             self.wait_until(lambda: self._answers(self.session, keys.params_latest), "learner")
             return self.supervise()
@@ -152,18 +181,6 @@ class Cluster:
             self.shutdown()
             if self.session is not None:
                 self.session.close()
-
-    def add(self, spec: ServiceSpec, train_file: Path, index: int) -> None:
-        name = spec.role if spec.replicas == 1 else f"{spec.role}-{index}"
-        env = child_environment(os.environ, {k: str(v) for k, v in spec.env.items()},
-                                self.plan.security.env(user_of(spec.role, index)))
-        self.start(Child(
-            name, spec.role, self.argv(spec, train_file, index), env,
-            self.run_dir / "logs" / f"{name}.log", self.display.echo,
-            RestartTracker(spec.restart, self.plan.restarts),
-            ident=None if spec.role == "router" else str(index),
-            has_token=spec.role != "router",
-            stats_interval_s=stats_interval_s(spec.args, env)))
 
     def add_link(self, router: ServiceSpec) -> None:
         # The link is part of the network between the actors and the router: restarted like it.
@@ -340,22 +357,6 @@ def user_of(role: str, index: int) -> str:
     """The user a service authenticates as: its role, with the actor's id ("" for the router,
     which authenticates the others)."""
     return {"actor": f"actor-{index}", "router": ""}.get(role, role)
-
-
-def stats_interval_s(args: list, env: dict) -> float:
-    """The stats interval a service was given (flag, else TPDEB_ variable, else the default),
-    against which the display judges its stats stale."""
-    args = [str(a) for a in args]
-    value = env.get("TPDEB_STATS_INTERVAL_S")
-    for i, arg in enumerate(args):
-        if arg == "--stats-interval-s" and i + 1 < len(args):
-            value = args[i + 1]
-        elif arg.startswith("--stats-interval-s="):
-            value = arg.partition("=")[2]
-    try:
-        return float(value) if value else ServiceConfig.stats_interval_s
-    except ValueError:
-        return ServiceConfig.stats_interval_s  # the service itself refuses it, with the reason
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

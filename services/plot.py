@@ -18,6 +18,7 @@ import math
 import sys
 from pathlib import Path
 
+from tpdeb.services.config import flat
 from tpdeb.services.store.metrics import read_metrics
 
 if sys.version_info >= (3, 11):
@@ -54,7 +55,8 @@ def read_run(path: Path, metric: str) -> Run:
     config: dict = {}
     if (path / "config.toml").is_file():
         try:
-            config = tomllib.loads((path / "config.toml").read_text())
+            # flat(): its tables in one mapping (a run dir written before they existed is flat)
+            config = flat(tomllib.loads((path / "config.toml").read_text()))
         except tomllib.TOMLDecodeError as exc:
             raise PlotError(f"{path}/config.toml: not valid TOML ({exc})") from None
     steps, values = [], []

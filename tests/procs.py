@@ -107,3 +107,18 @@ def python_c(code: str) -> subprocess.CompletedProcess:
     """`python -c code` in the repository root, its output captured; fails on a non-zero exit."""
     return subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
                           check=True)
+
+
+def service_pid(run_dir: Path, name: str) -> int:
+    """The pid of the cluster's service `name` (router, replay, learner, actor-0, …): the
+    process started with its configuration file, {run_dir}/config/{name}.toml."""
+    path = str(Path(run_dir) / "config" / f"{name}.toml")
+    for pid in pids_with(path):
+        try:
+            argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode().split("\0")
+        except OSError:
+            continue
+        if path in argv and not any(a.endswith("pytest") for a in argv):
+            return pid
+    raise AssertionError(f"no process runs by {path}")
+

@@ -5,9 +5,9 @@ from pathlib import Path
 
 import pytest
 
-from tpdeb.services.cluster import parse_args
+from tpdeb.services.cluster import Cluster, parse_args
 from tpdeb.services.config import ConfigError, resolve, to_toml
-from tpdeb.services.config.service import LearnerServiceConfig
+from tpdeb.services.config.service import SERVICE_CONFIGS
 from tpdeb.services.launcher.plan import child_environment, make_plan
 from tpdeb.services.launcher.restart import RestartPolicy, RestartSettings
 
@@ -47,14 +47,52 @@ def test_the_shells_training_variables_rank_below_flags_and_reach_no_child(tmp_p
     env = child_environment(dict(os.environ), {"OMP_NUM_THREADS": "1"})
     assert "TPDEB_SEED" not in env and "TPDEB_LEARNING_RATE" not in env
     assert env["TPDEB_STATS_INTERVAL_S"] == "2" and env["OMP_NUM_THREADS"] == "1"
-    train_file = tmp_path / "train.toml"
-    train_file.write_text(to_toml(plan.train))
-    for name in ("TPDEB_SEED", "TPDEB_LEARNING_RATE", "TPDEB_STATS_INTERVAL_S"):
-        monkeypatch.delenv(name)
-    for name, value in env.items():
-        monkeypatch.setenv(name, value)
-    child = resolve(LearnerServiceConfig, ["--config", str(train_file)], "tpdeb-learner", "")
-    assert child.seed == 5 and child.learning_rate == 1e-4 and child.stats_interval_s == 2.0
+
+
+def test_each_child_runs_by_its_configuration_resolved_whole(tmp_path, monkeypatch):
+    """The launcher resolves every child's configuration once — train.toml, the flags it sets,
+    the service's `args` and `env`, the shell's variables — into config/{name}.toml; the child
+    starts with that file alone and no TPDEB_* setting but its password, so a flag always wins
+    and the run dir records what runs."""
+    monkeypatch.setenv("TPDEB_SEED", "3")
+    monkeypatch.setenv("TPDEB_STATS_INTERVAL_S", "2")
+    text = BASE.replace('depends_on = ["router"]\nrestart = "on-failure"\nargs = []\nenv = {}',
+                        'depends_on = ["router"]\nrestart = "on-failure"\n'
+                        'args = ["--snapshot-interval-s", "7"]\nenv = {TPDEB_KEEP_SNAPSHOTS = "4"}')
+    cluster = Cluster(plan_for(tmp_path, text, "--seed", "5", "--auth"))
+    cluster.write_run_dir()
+    names = [slot.name for slot in cluster.slots]
+    assert names == ["router", "replay", "learner", "actor-0", "actor-1"]
+    configs = {}
+    for slot in cluster.slots:
+        path = cluster.run_dir / "config" / f"{slot.name}.toml"
+        assert slot.argv[1:] == ["--config", str(path)]
+        assert {k for k in slot.env if k.startswith("TPDEB_")} <= {"TPDEB_PASSWORD"}
+        assert slot.stats_interval_s == 2.0
+        cls = SERVICE_CONFIGS[slot.role]
+        configs[slot.name] = resolve(cls, ["--config", str(path)], slot.name, "", slot.env)
+        assert to_toml(configs[slot.name]) == path.read_text()  # it reads back as written
+    replay, learner = configs["replay"], configs["learner"]
+    assert (replay.snapshot_interval_s, replay.keep_snapshots) == (7.0, 4)
+    assert replay.seed == learner.seed == configs["actor-1"].seed == 5
+    assert configs["actor-1"].actor_id == 1 and configs["actor-1"].user == "actor-1"
+    assert learner.secret_password and "password" not in (
+        cluster.run_dir / "config" / "learner.toml").read_text().replace('password = ""', "")
+    assert configs["router"].auth_file and not hasattr(configs["router"], "seed")
+
+
+def test_a_bad_service_setting_stops_the_launch_naming_it(tmp_path):
+    text = BASE.replace('depends_on = ["learner"]\nrestart = "on-failure"\nargs = []',
+                        'depends_on = ["learner"]\nrestart = "on-failure"\n'
+                        'args = ["--resend-after-s", "0"]')
+    cluster = Cluster(plan_for(tmp_path, text))
+    with pytest.raises(ConfigError, match="resend_after_s=0.0: must be > 0"):
+        cluster.write_run_dir()
+    text = BASE.replace('depends_on = ["learner"]\nrestart = "on-failure"\nargs = []',
+                        'depends_on = ["learner"]\nrestart = "on-failure"\n'
+                        'args = ["--resend-after", "3"]')
+    with pytest.raises(ConfigError, match=r"\[services.actor\] args.*--resend-after"):
+        Cluster(plan_for(tmp_path, text)).write_run_dir()
 
 
 def test_a_bad_training_variable_is_named(tmp_path, monkeypatch):

@@ -1,6 +1,7 @@
 import pytest
 
 from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.config.train import TrainConfig
 
 
@@ -20,7 +21,7 @@ def test_flags_follow_cleanrl_names_and_types():
 
 def test_precedence_defaults_file_env_flags(tmp_path, monkeypatch):
     path = tmp_path / "c.toml"
-    path.write_text('seed = 5\nzeta = 0.5\nexp_name = "from-file"\n')
+    path.write_text('[run]\nseed = 5\nexp_name = "from-file"\n[replay]\nzeta = 0.5\n')
     monkeypatch.setenv("TPDEB_ZETA", "0.3")
     monkeypatch.setenv("TPDEB_GAMMA", "0.95")
     cfg = parse(["--config", str(path), "--gamma", "0.9"])
@@ -58,17 +59,29 @@ def test_bad_settings_are_refused_with_the_value(argv, message):
         parse(argv)
 
 
-def test_bad_config_files(tmp_path):
-    with pytest.raises(ConfigError, match="no such file"):
-        parse(["--config", str(tmp_path / "missing.toml")])
+@pytest.mark.parametrize("flag, text, message", [
+    ("--config", "seed = = 1", "not valid TOML"),
+    ("--config", "[run]\nsed = 1", r"\[run\]: unknown setting 'sed' \(did you mean 'seed'"),
+    ("--config", "seed = 1", r"seed = 1 outside a table: put it under \[run\]"),
+    ("--config", "[run]\nzeta = 0.1", r"\[run\]: zeta belongs in \[replay\]"),
+    ("--config", "[optim]\nlearning_rate = 0.1", r"no table \[optim\] here; expected \[run\], "),
+    ("--preset", "[run]\nseed = 3", r"no table \[run\] here \(a preset holds training settings"),
+    ("--preset", "[loss]\nlearning_rat = 3e-4", "unknown setting 'learning_rat'.*'learning_rate'"),
+    ("--preset", "[replay]\ngamma = 0.9", r"gamma belongs in \[loss\]"),
+    ("--preset", "gamma = 0.9", r"outside a table: put it under \[loss\]"),
+    ("--preset", "[loss]\ngamma = 'high'", "gamma='high' is not a valid float"),
+])
+def test_bad_files_are_refused_in_one_line(tmp_path, flag, text, message):
     bad = tmp_path / "bad.toml"
-    bad.write_text("seed = = 1")
-    with pytest.raises(ConfigError, match="not valid TOML"):
-        parse(["--config", str(bad)])
-    unknown = tmp_path / "unknown.toml"
-    unknown.write_text("sed = 1")
-    with pytest.raises(ConfigError, match="unknown setting 'sed'"):
-        parse(["--config", str(unknown)])
+    bad.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        parse([flag, str(bad)])
+
+
+@pytest.mark.parametrize("flag", ["--config", "--preset"])
+def test_a_missing_file_is_named(tmp_path, flag):
+    with pytest.raises(ConfigError, match="no such file"):
+        parse([flag, str(tmp_path / "missing.toml")])
 
 
 def test_an_empty_list_flag_clears_the_list():
@@ -83,14 +96,19 @@ def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first
     import dataclasses
 
     from tpdeb.services.config import build_parser
-    from tpdeb.services.config.service import ActorServiceConfig, LearnerServiceConfig
-    from tpdeb.services.config.train import TrainConfig
-    from tpdeb.services.router import RouterConfig
+    from tpdeb.services.config.service import (
+        ActorServiceConfig,
+        LearnerServiceConfig,
+        ReplayServiceConfig,
+        RouterConfig,
+    )
     from tpdeb.tpdeb_core.loss_config import LossConfig
 
     loss = {f.name for f in dataclasses.fields(LossConfig)}
     assert loss <= {f.name for f in dataclasses.fields(TrainConfig)}
-    assert not loss & set(vars(TrainConfig)["__annotations__"])  # inherited, not repeated
+    owners = [vars(k).get("__annotations__", {}) for k in TrainConfig.__mro__]
+    names = [name for own in owners for name in own if name != "SECTION"]
+    assert len(names) == len(set(names))  # every group's settings declared once, none repeated
     flags = [action.dest for action in build_parser(LearnerServiceConfig, "p", "")._actions]
     assert flags.index("requests_in_flight") < flags.index("run_id") < flags.index("env_id") \
         < flags.index("learning_rate")
@@ -102,6 +120,29 @@ def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first
     assert actor & training == {"exp_name", "algo", "preset", "env_id", "seed", "total_timesteps",
                                 "run_dir", "log_interval_s", "num_envs",
                                 "trajectory_compression"}
+    # the replay: the run, the model, the buffers and the priorities, not the optimiser's
+    replay = {f.name for f in dataclasses.fields(ReplayServiceConfig)}
+    assert {"zeta", "fragment_len", "gamma", "priority_mode"} <= replay
+    assert not replay & {"learning_rate", "adam_eps", "kl_coef", "anneal_lr", "num_envs"}
+    learner = {f.name for f in dataclasses.fields(LearnerServiceConfig)}
+    assert training - learner == {"num_envs", "trajectory_compression"}
+
+
+def test_every_setting_has_one_table_and_files_list_them_in_order():
+    import dataclasses
+
+    from tpdeb.services.config import SECTIONS, known_settings, section_of
+    from tpdeb.services.config.service import SERVICE_CONFIGS
+
+    known = known_settings()
+    assert set(known.values()) == set(SECTIONS)
+    for cls in SERVICE_CONFIGS.values():  # a field means the same, and sits in the same table,
+        for f in dataclasses.fields(cls):  # in every service that holds it
+            assert section_of(cls, f.name) == known[f.name], (cls.__name__, f.name)
+    assert section_of(ReplayServiceConfig, "listen") == "net"  # redeclared: the group's table
+    text = to_toml(TrainConfig())
+    assert [line for line in text.splitlines() if line.startswith("[")] == [
+        "[run]", "[actor]", "[model]", "[replay]", "[learner]", "[loss]"]
 
 
 def test_a_service_reads_a_shared_train_file_and_takes_what_it_uses(tmp_path):
@@ -111,7 +152,7 @@ def test_a_service_reads_a_shared_train_file_and_takes_what_it_uses(tmp_path):
     path.write_text(to_toml(TrainConfig(num_envs=3, learning_rate=3e-4)))
     actor = resolve(ActorServiceConfig, ["--config", str(path)], "p", "")
     assert actor.num_envs == 3 and not hasattr(actor, "learning_rate")
-    path.write_text("num_envs = 3\nlearning_rat = 0.1\n")  # a typo is still refused
+    path.write_text("[actor]\nnum_envs = 3\n[loss]\nlearning_rat = 0.1\n")  # a typo: refused
     with pytest.raises(ConfigError, match="unknown setting 'learning_rat'"):
         resolve(ActorServiceConfig, ["--config", str(path)], "p", "")
     # the same command line for every service: the actor passes over the learner's flags

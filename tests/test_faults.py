@@ -7,11 +7,10 @@ import os
 import signal
 import threading
 import time
-from pathlib import Path
 
 import pytest
 
-from tests.procs import free_port, pids_with
+from tests.procs import free_port, service_pid
 from tests.test_services import next_stats, watch_stats
 from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode
 from tpdeb.services.net.session import open_session
@@ -126,11 +125,13 @@ run_id = "faults"
 endpoint = "{endpoint}"
 restart_backoff_s = 0.5
 
-[train]
+[train.run]
 env_id = "{env}"
 total_timesteps = {steps}
-num_envs = 2
 log_interval_s = 1
+
+[train.actor]
+num_envs = 2
 
 [services.router]
 command = "tpdeb-router"
@@ -150,19 +151,6 @@ command = "tpdeb-actor"
 replicas = 2
 depends_on = ["learner"]
 """
-
-
-def service_pid(run_dir, command: str, *extra: str) -> int:
-    """The pid of the cluster's service started as `command` (with `extra` arguments)."""
-    for pid in pids_with(str(run_dir)):
-        try:
-            argv = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        text = [a.decode() for a in argv]
-        if any(a.endswith(command) for a in text[:2]) and all(e in text for e in extra):
-            return pid
-    raise AssertionError(f"no {command} {' '.join(extra)} process of {run_dir}")
 
 
 class StatsLog:
@@ -219,7 +207,7 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
         stats.wait("learner", "global_step", lambda v: v >= 4000)
         with acks.lock:
             old_incarnations = {inc for (a, inc, _) in acks.seen if a == 0}
-        os.kill(service_pid(run_dir, "tpdeb-actor", "--actor-id", "0"), signal.SIGKILL)
+        os.kill(service_pid(run_dir, "actor-0"), signal.SIGKILL)
         killed = time.monotonic()
         deadline = killed + 90
         while time.monotonic() < deadline:
@@ -234,7 +222,7 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
 
         # the learner: resumes from its checkpoint, versions go on above the old ones
         time.sleep(3)  # past a periodic checkpoint
-        os.kill(service_pid(run_dir, "tpdeb-learner"), signal.SIGKILL)
+        os.kill(service_pid(run_dir, "learner"), signal.SIGKILL)
         killed = time.monotonic()
         time.sleep(0.5)  # stats already on their way
         before = max(v for _, v in stats.series("learner", "param_version"))
@@ -246,14 +234,14 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
 
         # the replay: restores everything it acknowledged, acks resume
         stats.wait("replay", "snapshots_written", lambda v: v >= 1)
-        os.kill(service_pid(run_dir, "tpdeb-replay"), signal.SIGKILL)
+        os.kill(service_pid(run_dir, "replay"), signal.SIGKILL)
         killed = time.monotonic()
         acked_before = acks.snapshot()
         recovery["replay"] = acks.wait_after(killed + 0.05, "the replay restarted") - killed
 
         # the router: every service reconnects to its replacement, acks flow again
         time.sleep(2)
-        os.kill(service_pid(run_dir, "tpdeb-router"), signal.SIGKILL)
+        os.kill(service_pid(run_dir, "router"), signal.SIGKILL)
         killed = time.monotonic()
         recovery["router"] = acks.wait_after(killed + 0.05, "the router restarted") - killed
 

@@ -129,6 +129,6 @@ def test_only_the_training_and_evaluating_entry_points_import_torch():
 
 
 def test_router_config_validates_without_torch():
-    code = ("import sys, tpdeb.services.router; tpdeb.services.router.RouterConfig(); "
+    code = ("import sys, tpdeb.services.router; tpdeb.services.config.service.RouterConfig(); "
             "print('torch' in sys.modules)")
     assert python_c(code).stdout.strip() == "False"

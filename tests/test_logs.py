@@ -6,7 +6,7 @@ import logging
 import pytest
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.config.service import ServiceConfig
+from tpdeb.services.config.service import NetConfig
 from tpdeb.services.logs import RateLimit, rate_limited, setup_logging
 
 
@@ -32,7 +32,7 @@ def test_a_bad_log_level_is_refused_with_the_value():
     with pytest.raises(ValueError, match="'loud'"):
         setup_logging("loud")
     with pytest.raises(ConfigError, match="log_level='loud'"):
-        ServiceConfig(log_level="loud")
+        NetConfig(log_level="loud")
 
 
 def test_the_rate_limit_passes_one_record_per_kind_and_interval_and_counts_the_rest():

@@ -20,7 +20,7 @@ from tests.procs import ROOT, free_port, pids_with
 from tpdeb.protocol import Keys
 from tpdeb.services.cluster import parse_args
 from tpdeb.services.config import ConfigError, resolve, to_toml
-from tpdeb.services.config.service import ActorServiceConfig, ServiceConfig
+from tpdeb.services.config.service import ActorServiceConfig, NetConfig, RouterConfig
 from tpdeb.services.launcher.plan import make_plan
 from tpdeb.services.link import LinkConfig
 from tpdeb.services.net import certs as certs_cli
@@ -33,7 +33,6 @@ from tpdeb.services.net.security import (
     write_auth_file,
 )
 from tpdeb.services.net.session import open_for, open_session, zenoh_config
-from tpdeb.services.router import RouterConfig
 from tpdeb.services.store.metrics import read_metrics
 
 ENV = "InvertedPendulum-v5"
@@ -464,8 +463,8 @@ def test_security_settings_are_validated_with_one_clear_line(tmp_path, certs):
     ]
     for fields, message in cases:
         with pytest.raises(ConfigError, match=message):
-            ServiceConfig(**fields)
-    ServiceConfig(listen=tls, tls_cert=cert, tls_key=key, connect=tls, tls_ca=ca)
+            NetConfig(**fields)
+    NetConfig(listen=tls, tls_cert=cert, tls_key=key, connect=tls, tls_ca=ca)
 
     users = tmp_path / "users.txt"
     with pytest.raises(ConfigError, match="--acl needs --auth-file"):

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from tests.procs import pids_with
-from tpdeb.services.cluster import Cluster, parse_args, stats_interval_s
+from tests.procs import pids_with, service_pid
+from tpdeb.services.cluster import Cluster, parse_args
 from tpdeb.services.config import ConfigError
 from tpdeb.services.launcher.child import Child
 from tpdeb.services.launcher.plan import make_plan
@@ -102,14 +102,6 @@ def test_which_exits_a_policy_restarts(policy, code, action):
 def test_restart_policy_refuses_anything_else(value):
     with pytest.raises(ConfigError, match=r"is not a restart policy; use \"no\""):
         RestartPolicy.parse(value, "[services.actor]")
-
-
-def test_stats_interval_comes_from_the_flag_then_the_environment():
-    assert stats_interval_s([], {}) == 1.0
-    assert stats_interval_s([], {"TPDEB_STATS_INTERVAL_S": "2"}) == 2.0
-    assert stats_interval_s(["--stats-interval-s", "0.5"], {"TPDEB_STATS_INTERVAL_S": "2"}) == 0.5
-    assert stats_interval_s(["--stats-interval-s=4"], {}) == 4.0
-    assert stats_interval_s(["--stats-interval-s", "soon"], {}) == 1.0
 
 
 # -- the health part of the status line
@@ -343,17 +335,6 @@ def start_cluster(procs, tmp_path, total_timesteps: int, actor_args: str = "[]")
     return proc, run_dir
 
 
-def service_pid(run_dir: Path, *words: str) -> int:
-    """The pid of the cluster's service whose command line has all `words`."""
-    for pid in pids_with(str(run_dir / "train.toml")) + pids_with(str(run_dir / "router.toml")):
-        with open(f"/proc/{pid}/cmdline", "rb") as f:
-            argv = f.read().split(b"\0")
-        text = " ".join(a.decode() for a in argv)
-        if all(w in text for w in words):
-            return pid
-    raise AssertionError(f"no running service with {words} in {run_dir}")
-
-
 def test_crash_looping_actors_stop_the_cluster_with_a_clear_message(procs, tmp_path):
     started = time.monotonic()
     cluster, run_dir = start_cluster(procs, tmp_path, 1_000_000, '["--env-id", "Nope-v0"]')
@@ -388,13 +369,12 @@ def wait_for_count(procs, proc, text: str, count: int, timeout_s: float) -> None
         time.sleep(0.2)
 
 
-def kill_and_finish(procs, tmp_path, total_timesteps: int, ready: str, words: tuple[str, ...],
-                    name: str, back: str):
-    """Kill the service with `words` in its command line once the cluster printed `ready`;
-    it must be restarted, print `back` a second time, and the run finish with exit 0."""
+def kill_and_finish(procs, tmp_path, total_timesteps: int, ready: str, name: str, back: str):
+    """Kill the service `name` once the cluster printed `ready`; it must be restarted, print
+    `back` a second time, and the run finish with exit 0."""
     cluster, run_dir = start_cluster(procs, tmp_path, total_timesteps)
     procs.wait_for_line(cluster, ready, timeout_s=150)
-    os.kill(service_pid(run_dir, *words), signal.SIGKILL)
+    os.kill(service_pid(run_dir, name), signal.SIGKILL)
     wait_for_count(procs, cluster, back, 2, timeout_s=120)  # the new process is in the run
     assert cluster.wait(240) == 0, procs.output(cluster)[-4000:]
     out = procs.output(cluster)
@@ -408,12 +388,11 @@ def kill_and_finish(procs, tmp_path, total_timesteps: int, ready: str, words: tu
 
 def test_a_killed_actor_is_restarted_and_the_run_finishes(procs, tmp_path):
     # Killed as soon as it acts; the run is long enough for its successor to rejoin.
-    kill_and_finish(procs, tmp_path, 40_000, "[actor-0] tpdeb-actor: actor 0:",
-                    ("tpdeb-actor", "--actor-id 0"), "actor-0",
+    kill_and_finish(procs, tmp_path, 40_000, "[actor-0] tpdeb-actor: actor 0:", "actor-0",
                     "[actor-0] tpdeb-actor: actor 0:")
 
 
 def test_a_killed_router_is_restarted_and_the_run_finishes(procs, tmp_path):
     # Every other service is a client of the router: they reconnect when it comes back.
-    kill_and_finish(procs, tmp_path, 16_000, "[learner] tpdeb-learner: [", ("tpdeb-router",),
-                    "router", "[router] tpdeb-router: routing on")
+    kill_and_finish(procs, tmp_path, 16_000, "[learner] tpdeb-learner: [", "router",
+                    "[router] tpdeb-router: routing on")

@@ -11,12 +11,34 @@ CLIP_ANCHORS = ("target", "behaviour")
 
 
 @dataclass
-class LossConfig:
-    """What the loss computes and how the optimiser steps (DESIGN §2), each setting declared and
-    documented once: configurations that train extend this class."""
+class PriorityConfig:
+    """What a fragment's return and priority are: what the replay server, which ranks the
+    fragments and tells the actors how to score them, shares with the loss."""
+
+    SECTION = "loss"  # the table of these settings in a TOML configuration
 
     gamma: float = 0.99
     """discount factor"""
+    priority_mode: str = "trajectory"
+    """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
+    priority_kappa: float = 0.0
+    """weight of the fragment's mean |scaled return| added to its priority"""
+
+    def __post_init__(self):
+        more = getattr(super(), "__post_init__", None)
+        if more is not None:  # the other groups of a configuration composed with this one
+            more()
+        if self.priority_mode not in PRIORITY_MODES:
+            raise ValueError(f"priority_mode={self.priority_mode!r}: use one of {PRIORITY_MODES}")
+        if not 0.0 < self.gamma <= 1.0:
+            raise ValueError(f"gamma={self.gamma}: must be in (0, 1]")
+
+
+@dataclass
+class LossConfig(PriorityConfig):
+    """What the loss computes and how the optimiser steps (DESIGN §2), each setting declared and
+    documented once: configurations that train extend this class."""
+
     rho_bar: float = 1.0
     """V-trace ρ̄ (truncation of the importance weight in the value target)"""
     c_bar: float = 1.0
@@ -45,10 +67,6 @@ class LossConfig:
     """Adam epsilon"""
     norm_adv: bool = True
     """normalise advantages per batch"""
-    priority_mode: str = "trajectory"
-    """trajectory (Σ|δ| per fragment) | step (PER on single transitions) | none"""
-    priority_kappa: float = 0.0
-    """weight of the fragment's mean |scaled return| added to its priority"""
     clip_anchor: str = "target"
     """target: the surrogate's ratio is taken to the target policy (IMPACT, TPDEB) | behaviour:
     PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
@@ -56,13 +74,12 @@ class LossConfig:
     """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
 
     def __post_init__(self):
-        if self.priority_mode not in PRIORITY_MODES:
-            raise ValueError(f"priority_mode={self.priority_mode!r}: use one of {PRIORITY_MODES}")
+        super().__post_init__()
         if not 0.0 < self.tau <= 1.0:
             raise ValueError(f"tau={self.tau}: the soft target rate must be in (0, 1]")
         if self.clip_anchor not in CLIP_ANCHORS:
             raise ValueError(f"clip_anchor={self.clip_anchor!r}: use one of {CLIP_ANCHORS}")
         if not 0.0 <= self.vtrace_lambda <= 1.0:
             raise ValueError(f"vtrace_lambda={self.vtrace_lambda}: must be in [0, 1]")
-        if not 0.0 < self.gamma <= 1.0:
-            raise ValueError(f"gamma={self.gamma}: must be in (0, 1]")
+        if not self.learning_rate > 0:
+            raise ValueError(f"learning_rate={self.learning_rate}: must be > 0")

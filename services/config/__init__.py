@@ -10,6 +10,8 @@ from __future__ import annotations
 import argparse
 import ast
 import dataclasses
+import difflib
+import functools
 import inspect
 import json
 import os
@@ -25,12 +27,15 @@ else:  # pragma: no cover
     import tomli as tomllib
 
 ENV_PREFIX = "TPDEB_"
+# The tables of a TOML configuration, one per group of settings, in the order files list them.
+SECTIONS = ("run", "actor", "model", "replay", "learner", "loss", "net", "router")
 
 
 class ConfigError(ValueError):
     """A bad setting; the message says which and what to do."""
 
 
+@functools.cache
 def field_docs(cls) -> dict[str, str]:
     """Attribute docstrings (the string literal right after each field) of a dataclass."""
     docs: dict[str, str] = {}
@@ -87,23 +92,68 @@ def coerce(cls, name: str, value, source: str):
         ) from None
 
 
-def load_toml(path: str | Path, section: str | None = None) -> dict:
+def load_toml(path: str | Path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"--config {path}: no such file")
     try:
-        data = tomllib.loads(path.read_text())
+        return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"--config {path}: not valid TOML ({exc})") from None
-    if section and isinstance(data.get(section), dict):
-        data = data[section]
-    return data
+
+
+def section_of(cls, name: str) -> str:
+    """The TOML table a field lives in: the `SECTION` of the group that first declares it."""
+    for klass in reversed(cls.__mro__):
+        if name in vars(klass).get("__annotations__", {}):
+            return klass.SECTION
+    raise KeyError(name)
+
+
+def read_sections(cls, tables: dict, source: str, allowed: set[str] | None = None,
+                  why: str = "") -> dict:
+    """`cls`'s values from a sectioned TOML document, coerced. Every key must sit in its own
+    group's table; the settings of other services' groups are checked and passed over, so one
+    file can configure a whole run. `allowed`: the tables this document may have (`why` says
+    why not others)."""
+    known = known_settings()
+    sections = set(known.values()) if allowed is None else allowed
+    names = {f.name for f in dataclasses.fields(cls)}
+    values: dict = {}
+    for section, table in tables.items():
+        if not isinstance(table, dict):
+            home = known.get(section.replace("-", "_"))
+            hint = f"put it under [{home}]" if home else "settings sit in their group's table"
+            raise ConfigError(f"{source}: {section} = {table!r} outside a table: {hint}")
+        if section not in sections:
+            raise ConfigError(f"{source}: no table [{section}] here{why}; expected "
+                              f"{', '.join(f'[{s}]' for s in SECTIONS if s in sections)}")
+        for key, value in table.items():
+            key = key.replace("-", "_")
+            if key not in known:
+                near = difflib.get_close_matches(key, known, n=1)
+                hint = f" (did you mean {near[0]!r}?)" if near else ""
+                raise ConfigError(f"{source} [{section}]: unknown setting {key!r}{hint}")
+            if known[key] != section:
+                raise ConfigError(f"{source} [{section}]: {key} belongs in [{known[key]}]")
+            if key in names:
+                values[key] = coerce(cls, key, value, f"{source} [{section}]")
+    return values
+
+
+def known_settings() -> dict[str, str]:
+    """Every setting of every service and of a training run, with its table."""
+    from tpdeb.services.config.service import SERVICE_CONFIGS
+    from tpdeb.services.config.train import TrainConfig
+
+    return {f.name: section_of(cls, f.name)
+            for cls in (TrainConfig, *SERVICE_CONFIGS.values()) for f in dataclasses.fields(cls)}
 
 
 def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
     docs = field_docs(cls)
     parser = argparse.ArgumentParser(
-        prog=prog, description=description,
+        prog=prog, description=description, allow_abbrev=False,
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     parser.add_argument("--config", help="TOML file with any of the settings below")
     for f in _fields_derived_first(cls):
@@ -134,7 +184,7 @@ _OTHERS = "other service's "  # the dest prefix of the flags a service passes ov
 
 
 def training_names() -> set[str]:
-    """Every training setting: a file (train.toml) may hold those a service does not use."""
+    """Every training setting: a command line may carry those a service does not use."""
     from tpdeb.services.config.train import TrainConfig
 
     return {f.name for f in dataclasses.fields(TrainConfig)}
@@ -150,8 +200,10 @@ def _fields_derived_first(cls) -> list:
     return sorted(dataclasses.fields(cls), key=lambda f: owner.get(f.name, len(cls.__mro__)))
 
 
-def resolve(cls, argv: list[str] | None, prog: str, description: str, section: str | None = None):
-    """Parse argv into a `cls` instance with the documented precedence."""
+def resolve(cls, argv: list[str] | None, prog: str, description: str, environ=None):
+    """Parse argv into a `cls` instance with the documented precedence (`environ`: the
+    variables to read, os.environ by default)."""
+    environ = os.environ if environ is None else environ
     parser = build_parser(cls, prog, description)
     args = {k: v for k, v in vars(parser.parse_args(argv)).items()
             if not k.startswith(_OTHERS)}
@@ -159,16 +211,9 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, section: s
     values: dict = {}
     config_path = args.pop("config", None)
     if config_path:
-        others = training_names()
-        for key, value in load_toml(config_path, section).items():
-            key = key.replace("-", "_")
-            if key not in names:
-                if isinstance(value, dict) or key in others:  # other services' settings
-                    continue
-                raise ConfigError(f"--config {config_path}: unknown setting {key!r}")
-            values[key] = coerce(cls, key, value, f"--config {config_path}")
+        values.update(read_sections(cls, load_toml(config_path), f"--config {config_path}"))
     for name in names:
-        env_value = os.environ.get(ENV_PREFIX + name.upper())
+        env_value = environ.get(ENV_PREFIX + name.upper())
         if env_value is not None:
             values[name] = coerce(cls, name, env_value, ENV_PREFIX + name.upper())
     for name, value in args.items():
@@ -186,10 +231,22 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, section: s
 
 
 def to_toml(config) -> str:
-    """Flat TOML of a config dataclass, readable back with --config."""
-    lines = []
+    """A config dataclass as sectioned TOML, every field in its group's table, readable back
+    with --config."""
+    tables: dict[str, list[str]] = {}
     for key, value in dataclasses.asdict(config).items():
         if isinstance(value, (list, tuple)):
             value = list(value)
-        lines.append(f"{key} = {json.dumps(value)}")
-    return "\n".join(lines) + "\n"
+        tables.setdefault(section_of(type(config), key), []).append(
+            f"{key} = {json.dumps(value)}")
+    return "\n".join(f"[{name}]\n" + "\n".join(tables[name]) + "\n"
+                     for name in SECTIONS if name in tables)
+
+
+def flat(document: dict) -> dict:
+    """A sectioned document's settings in one mapping (names are unique across tables; a
+    setting outside any table is kept as it is)."""
+    settings: dict = {}
+    for key, value in document.items():
+        settings.update(value if isinstance(value, dict) else {key: value})
+    return settings

@@ -13,12 +13,10 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from tpdeb.services.config import ConfigError, coerce, load_toml, training_names
+from tpdeb.services.config import ConfigError, load_toml, read_sections, section_of
 
 PRESETS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "presets"
-# Settings that say which run this is, not how to learn: never part of a preset.
-RUN_IDENTITY = {"env_id", "seed", "run_dir", "preset", "exp_name", "total_timesteps", "algo",
-                "log_interval_s"}
+
 
 
 def _ppo_per(values: dict) -> dict:
@@ -59,19 +57,13 @@ def preset_path(env_id: str, choice: str) -> Path | None:
 
 
 def load_preset(cls, path: Path) -> dict:
-    """The preset's values for `cls`'s fields (those of other services are left out; a key
-    that is no training setting at all is refused)."""
-    names, known = {f.name for f in dataclasses.fields(cls)}, training_names()
-    values = {}
-    for key, value in load_toml(path).items():
-        key = key.replace("-", "_")
-        if key in RUN_IDENTITY or key not in known:
-            what = "says which run this is" if key in RUN_IDENTITY else "is not a setting"
-            raise ConfigError(f"preset {path}: {key!r} {what}; a preset holds training "
-                              "settings only")
-        if key in names:
-            values[key] = coerce(cls, key, value, f"preset {path}")
-    return values
+    """The preset's values for `cls`'s fields, from its training tables (those of other
+    services are left out; a setting of the run's identity or of the network is refused)."""
+    from tpdeb.services.config.train import TrainConfig
+
+    tables = {section_of(TrainConfig, f.name) for f in dataclasses.fields(TrainConfig)} - {"run"}
+    return read_sections(cls, load_toml(path), f"preset {path}", allowed=tables,
+                         why=" (a preset holds training settings, not the run's)")
 
 
 def layer(cls, user: dict) -> dict:

@@ -1,23 +1,30 @@
-"""The services' configurations. `NetConfig` is what every process on the network needs (run
-id, endpoints, security, stats, logging); the router holds only that. The replay server, the
-learner and the actors add the training configuration, so a single TOML file (the cluster's
-`[train]` section, written to the run dir) configures them alike, the way one config runs
-either in one process (`tpdeb-train`) or distributed."""
+"""The services' configurations, each composed of the groups it uses (DESIGN §5):
+
+    router   NetConfig + its own (auth file, access control)
+    replay   NetConfig + SamplingConfig (run, model, replay, priorities) + its own
+    learner  NetConfig + LearningConfig (SamplingConfig, learner, loss) + its own
+    actor    NetConfig + RunSettings + ActingSettings + its own
+
+`NetConfig` is what every process on the network needs (run id, endpoints, security, stats,
+logging). Each group is a table of the TOML file, so one file (train.toml) configures every
+service of a run, each taking its groups and passing over the others'."""
 
 from __future__ import annotations
 
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.train import (
     ActingSettings,
+    LearningConfig,
     RunSettings,
-    TrainConfig,
+    SamplingConfig,
     chain_post_init,
 )
 from tpdeb.services.logs import LEVELS
-from tpdeb.services.net.security import check_settings
+from tpdeb.services.net.security import access_control, check_settings, read_auth_file
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
@@ -25,6 +32,10 @@ _RUN_ID = re.compile(r"[A-Za-z0-9_.-]{1,64}")
 
 @dataclass
 class NetConfig:
+    """How a process joins the run's network."""
+
+    SECTION = "net"
+
     run_id: str = "default"
     """run identifier: every key expression lives under tpdeb/{run_id}/, so runs sharing a
     router never exchange data"""
@@ -77,12 +88,44 @@ class NetConfig:
 
 
 @dataclass
-class ServiceConfig(NetConfig, TrainConfig):
-    """A service that trains or feeds training: the network settings and the training ones."""
+class RouterConfig(NetConfig):
+    """The router's settings: the network's and who may use it."""
+
+    SECTION = "router"
+
+    listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
+    """Zenoh endpoints the router listens on (every service connects here)"""
+    connect: tuple[str, ...] = ()
+    """other routers to connect to (multi-host setups)"""
+    auth_file: str = ""
+    """user:password dictionary, one pair a line, readable by its owner only: with it, only
+    sessions presenting a listed user and its password may connect"""
+    acl: bool = False
+    """access control (needs --auth-file): default deny, and each user gets only its role's
+    traffic under tpdeb/{run_id}/. Users are roles: replay, learner, actor-{i}, monitor, link
+    (ROLE@RUN_ID for a role of another run sharing this router)"""
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not self.listen:
+            raise ConfigError("the router needs at least one --listen endpoint")
+        if self.acl and not self.auth_file:
+            raise ConfigError("--acl needs --auth-file: access rules are per authenticated user")
+        if self.auth_file:
+            users = read_auth_file(self.auth_file)
+            if Path(self.auth_file).stat().st_mode & 0o077:
+                raise ConfigError(f"--auth-file {self.auth_file} holds passwords but others may "
+                                  f"read it: chmod 600 {self.auth_file}")
+            if self.acl:
+                access_control(self.run_id, users)  # every user must be a role
 
 
 @dataclass
-class ReplayServiceConfig(ServiceConfig):
+class ReplayServiceConfig(NetConfig, SamplingConfig):
+    """The replay server's settings: the network's, the replay's and its durability."""
+
+    SECTION = "replay"
+
     listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
     """Zenoh endpoints the replay server's router listens on (the others connect here)"""
     connect: tuple[str, ...] = ()
@@ -117,7 +160,11 @@ class ReplayServiceConfig(ServiceConfig):
 
 
 @dataclass
-class LearnerServiceConfig(ServiceConfig):
+class LearnerServiceConfig(NetConfig, LearningConfig):
+    """The learner's settings: the network's, the training's and its checkpoints."""
+
+    SECTION = "learner"
+
     requests_in_flight: int = 3
     """sample requests kept outstanding at the replay server so the learner never waits"""
     request_timeout_s: float = 30.0
@@ -149,6 +196,8 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
     """An actor's settings: the network's, the run's and how it collects; no replay, loss or
     optimiser setting (what it needs of those comes in the run spec)."""
 
+    SECTION = "actor"
+
     actor_id: int = 0
     """this actor's id (unique in the run): its key is traj/{actor_id}, its envs' seeds
     seed + 1000·actor_id + i"""
@@ -167,3 +216,7 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
         self.outbox_fragments = self.outbox_fragments or 2 * self.num_envs
         if self.resend_after_s <= 0:
             raise ConfigError(f"resend_after_s={self.resend_after_s}: must be > 0")
+
+
+SERVICE_CONFIGS = {"router": RouterConfig, "replay": ReplayServiceConfig,
+                   "learner": LearnerServiceConfig, "actor": ActorServiceConfig}

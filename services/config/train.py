@@ -12,9 +12,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError
-from tpdeb.tpdeb_core.loss_config import LossConfig
+from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
 from tpdeb.tpdeb_core.rate_limiter import RateLimiter
-from tpdeb.tpdeb_core.replay import PRIORITY_MODES, RETENTIONS, DualReplay
+from tpdeb.tpdeb_core.replay import RETENTIONS, DualReplay
 
 ALGOS = ("tpdeb", "impact", "ppo-per")
 
@@ -22,6 +22,8 @@ ALGOS = ("tpdeb", "impact", "ppo-per")
 @dataclass
 class RunSettings:
     """Which run this is: what every process that trains or acts for it holds."""
+
+    SECTION = "run"
 
     exp_name: str = "tpdeb"
     """name of this experiment, part of the default run directory"""
@@ -60,6 +62,8 @@ class ActingSettings:
     """How an actor collects: what it holds besides the run's identity (the fragment length,
     the networks and γ come to it in the run spec)."""
 
+    SECTION = "actor"
+
     num_envs: int = 8
     """environments stepped together by an actor"""
     trajectory_compression: str = "none"
@@ -82,15 +86,38 @@ def chain_post_init(cls, obj) -> None:
 
 
 @dataclass
-class TrainConfig(RunSettings, ActingSettings, LossConfig):
-    """Everything a training run is set by: the run, acting, the replay, the networks, the loss
-    and the optimiser (the single-process runner, the learner and the replay server hold it
-    whole)."""
+class ModelSettings:
+    """The fragments and the networks: what the run spec carries to the actors with γ and the
+    priority definition."""
+
+    SECTION = "model"
 
     fragment_len: int = 64
     """T: steps per fragment (a replay item)"""
-    anneal_lr: bool = False
-    """anneal the learning rate linearly to 0 over total_timesteps"""
+    hidden_sizes: tuple[int, ...] = (64, 64)
+    """hidden layer sizes of the policy and value MLPs"""
+    init_log_std: float = 0.0
+    """initial log standard deviation of the Gaussian policy"""
+    obs_clip: float = 10.0
+    """clip normalised observations to ±this"""
+
+    def __post_init__(self):
+        chain_post_init(ModelSettings, self)
+        self.hidden_sizes = tuple(self.hidden_sizes)
+        check(self, [
+            (self.fragment_len >= 2, "fragment_len", "must be ≥ 2"),
+            (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
+             "needs at least one positive layer size"),
+        ])
+
+
+@dataclass
+class ReplaySettings:
+    """The dual buffer and how it is sampled: what the replay server and the learner, which
+    asks for batches, share."""
+
+    SECTION = "replay"
+
     batch_fragments: int = 8
     """fragments per learner batch (B); a batch holds B·T steps"""
     replay_ratio: float = 16.0
@@ -112,12 +139,29 @@ class TrainConfig(RunSettings, ActingSettings, LossConfig):
     replay_retention: str = "priority"
     """priority: a full prioritized buffer gives up its lowest-priority fragment (TPDEB) | fifo:
     its oldest (a FIFO still sampled by priority, the PPO+PER baseline)"""
-    hidden_sizes: tuple[int, ...] = (64, 64)
-    """hidden layer sizes of the policy and value MLPs"""
-    init_log_std: float = 0.0
-    """initial log standard deviation of the Gaussian policy"""
-    obs_clip: float = 10.0
-    """clip normalised observations to ±this"""
+
+    def __post_init__(self):
+        chain_post_init(ReplaySettings, self)
+        check(self, [
+            (self.batch_fragments >= 1, "batch_fragments", "must be ≥ 1"),
+            (self.prioritized_capacity >= 1, "prioritized_capacity", "must be ≥ 1"),
+            (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
+            (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
+            (self.alpha >= 0.0, "alpha", "must be ≥ 0"),
+            (self.replay_retention in RETENTIONS, "replay_retention",
+             f"must be one of {', '.join(RETENTIONS)}"),
+            (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
+        ])
+
+
+@dataclass
+class LearnerSettings:
+    """How the learner runs and publishes, besides the loss."""
+
+    SECTION = "learner"
+
+    anneal_lr: bool = False
+    """anneal the learning rate linearly to 0 over total_timesteps"""
     params_publish_interval: int = 1
     """learner updates between parameter publications to the actors"""
     params_dtype: str = "float32"
@@ -127,45 +171,39 @@ class TrainConfig(RunSettings, ActingSettings, LossConfig):
     """torch intra-op threads (1 leaves the other core to the environments)"""
 
     def __post_init__(self):
-        self.hidden_sizes = tuple(self.hidden_sizes)
-        try:  # the groups' checks; the loss's raise ValueError
-            super().__post_init__()
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
-        checks = [
-            (self.fragment_len >= 2, "fragment_len", "must be ≥ 2"),
-            (self.batch_fragments >= 1, "batch_fragments", "must be ≥ 1"),
-            (self.learning_rate > 0, "learning_rate", "must be > 0"),
-            (self.prioritized_capacity >= 1, "prioritized_capacity", "must be ≥ 1"),
-            (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
-            (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
-            (self.alpha >= 0.0, "alpha", "must be ≥ 0"),
-            (self.replay_retention in RETENTIONS, "replay_retention",
-             f"must be one of {', '.join(RETENTIONS)}"),
-            (self.priority_mode in PRIORITY_MODES, "priority_mode",
-             f"must be one of {', '.join(PRIORITY_MODES)}"),
-            (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
+        chain_post_init(LearnerSettings, self)
+        check(self, [
             (self.params_publish_interval >= 1, "params_publish_interval", "must be ≥ 1"),
             (self.params_dtype in ("float32", "float16"), "params_dtype",
              "must be float32 or float16"),
-            (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
-             "needs at least one positive layer size"),
-        ]
-        for ok, name, rule in checks:
-            if not ok:
-                raise ConfigError(f"{name}={getattr(self, name)!r}: {rule}")
+            (self.torch_threads >= 1, "torch_threads", "must be ≥ 1"),
+        ])
+
+
+def check(config, rules: list[tuple[bool, str, str]]) -> None:
+    """Refuse the first broken rule, naming the setting and its value."""
+    for ok, name, rule in rules:
+        if not ok:
+            raise ConfigError(f"{name}={getattr(config, name)!r}: {rule}")
+
+
+@dataclass
+class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig):
+    """What a replay is built from: the run, its fragments, the buffers and the priorities (the
+    replay server holds this; the learner holds it with the loss)."""
+
+    def __post_init__(self):
+        try:  # the groups' checks; the core's raise ValueError
+            super().__post_init__()
+        except ConfigError:
+            raise
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         if self.uniform_capacity_steps < self.fragment_len:
             raise ConfigError(
                 f"uniform_capacity_steps={self.uniform_capacity_steps} cannot hold one fragment "
                 f"of fragment_len={self.fragment_len} steps: raise it")
         self.rate_limiter()  # refuses deadlocking replay-ratio settings
-
-    def loss_config(self) -> LossConfig:
-        names = {f.name for f in dataclasses.fields(LossConfig)}
-        try:
-            return LossConfig(**{k: v for k, v in dataclasses.asdict(self).items() if k in names})
-        except ValueError as exc:
-            raise ConfigError(str(exc)) from None
 
     @property
     def batch_steps(self) -> int:
@@ -194,3 +232,21 @@ class TrainConfig(RunSettings, ActingSettings, LossConfig):
             alpha=self.alpha, seed=self.seed, priority_mode=self.priority_mode,
             retention=self.replay_retention)
 
+
+@dataclass
+class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
+    """What the learner trains by: the replay's settings (it asks for the batches), its own and
+    the loss's."""
+
+    def loss_config(self) -> LossConfig:
+        names = {f.name for f in dataclasses.fields(LossConfig)}
+        try:
+            return LossConfig(**{k: v for k, v in dataclasses.asdict(self).items() if k in names})
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+
+
+@dataclass
+class TrainConfig(LearningConfig, ActingSettings):
+    """Everything a training run is set by: the run, acting, the replay, the networks, the loss
+    and the optimiser (the single-process runner and the cluster's [train] hold it whole)."""

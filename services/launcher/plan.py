@@ -10,7 +10,14 @@ import socket
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tpdeb.services.config import ENV_PREFIX, ConfigError, coerce, load_toml
+from tpdeb.services.config import (
+    ENV_PREFIX,
+    ConfigError,
+    coerce,
+    known_settings,
+    load_toml,
+    read_sections,
+)
 from tpdeb.services.config.presets import layer
 from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.launcher.restart import RESTART_KEYS, RestartPolicy, RestartSettings
@@ -21,8 +28,8 @@ DEFAULT_FILE = ROOT / "deploy" / "local.toml"
 ROLES = ("router", "replay", "learner", "actor")
 SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env", "restart"}
 CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", *RESTART_KEYS}
+PASSWORD_VARIABLE = ENV_PREFIX + "PASSWORD"  # the one setting no file carries
 LINK_KEYS = ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms", "queue_ms")
-
 
 
 @dataclass
@@ -104,7 +111,7 @@ def make_plan(args: argparse.Namespace) -> Plan:
     return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
                 stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
                 start_timeout_s=float(cluster.get("start_timeout_s", 120)),
-                train=train_settings(data.get("train", {}), args),
+                train=train_settings(data.get("train", {}), args, f"{path} [train]"),
                 services=start_order(services), source=str(path), link=link,
                 link_endpoint=link_endpoint,
                 restarts=RestartSettings.from_section(cluster, path), security=security)
@@ -140,9 +147,10 @@ def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, S
     return services
 
 
-def train_settings(section: dict, args: argparse.Namespace) -> TrainConfig:
-    """[train] < the shell's TPDEB_* training variables < the flags and --set."""
-    train = dict(section)
+def train_settings(section: dict, args: argparse.Namespace, source: str) -> TrainConfig:
+    """[train] (its tables [train.run], [train.loss], …) < the shell's TPDEB_* training
+    variables < the flags and --set."""
+    train = read_sections(TrainConfig, section, source)
     # The variables are resolved here once, so that train.toml is the whole training
     # configuration and no child applies them again on top of a flag (see child_environment).
     train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
@@ -172,14 +180,21 @@ def train_variables(environ) -> dict[str, str]:
 
 
 def child_environment(environ, *extra: dict) -> dict[str, str]:
-    """A child's environment: the launcher's without the training variables it has already
-    resolved into train.toml (they would outrank the file, and a flag the file carries), then
-    `extra` (the service's own `env`, its credentials) on top."""
+    """The environment a child's configuration is resolved in: the launcher's without the
+    training variables it has already resolved into train.toml (they would outrank the file,
+    and a flag the file carries), then `extra` (the service's own `env`, its credentials)."""
     trained = {ENV_PREFIX + name.upper() for name in train_variables(environ)}
     env = {k: v for k, v in environ.items() if k not in trained}
     for more in extra:
         env.update(more)
     return env
+
+
+def resolved_environment(env: dict[str, str]) -> dict[str, str]:
+    """A child's environment once its configuration is resolved into its file: no TPDEB_*
+    setting is left to act twice, except the password, which no file carries."""
+    settings = {ENV_PREFIX + name.upper() for name in known_settings()} - {PASSWORD_VARIABLE}
+    return {k: v for k, v in env.items() if k not in settings}
 
 
 def link_settings(section: dict, args: argparse.Namespace, path: Path) -> dict:

@@ -13,7 +13,7 @@ import numpy as np
 
 from tpdeb.protocol import Batch, DecodeError, Params, RunSpec, Trajectory
 from tpdeb.protocol.codec import check_params_shapes
-from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.config.train import SamplingConfig
 from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch
 from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
 
@@ -21,7 +21,7 @@ _FRAGMENT_FIELDS = [f.name for f in dataclasses.fields(Fragment)]
 _BATCH_FIELDS = [f.name for f in dataclasses.fields(FragmentBatch)]
 
 
-def run_spec(config: TrainConfig, obs_dim: int, act_dim: int, low, high) -> RunSpec:
+def run_spec(config: SamplingConfig, obs_dim: int, act_dim: int, low, high) -> RunSpec:
     return RunSpec(
         env_id=config.env_id, obs_dim=obs_dim, act_dim=act_dim, fragment_len=config.fragment_len,
         hidden_sizes=list(config.hidden_sizes), gamma=config.gamma, obs_clip=config.obs_clip,
