@@ -24,8 +24,8 @@ import numpy as np
 
 from tpdeb.protocol import Trajectory, decode, encode
 from tpdeb.services.config.service import ReplayServiceConfig
-from tpdeb.services.net.session import StopSignal
 from tpdeb.services.net.wire import run_spec
+from tpdeb.services.process import StopSignal
 from tpdeb.services.replay import ReplayServer
 
 T, OBS, ACT = 64, 17, 6

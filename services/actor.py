@@ -23,29 +23,14 @@ import time
 import numpy as np
 import zenoh
 
-from tpdeb.protocol import (
-    Ack,
-    Control,
-    DecodeError,
-    Keys,
-    Params,
-    Stats,
-    decode,
-    encode,
-)
-from tpdeb.services.config import ConfigError, resolve
+from tpdeb.protocol import Ack, Control, DecodeError, Keys, Params, Stats, decode, encode
+from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import ActorServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.logs import rate_limited, setup_logging
-from tpdeb.services.net.session import (
-    StopSignal,
-    close_session,
-    declare_publisher,
-    fail,
-    fetch_spec,
-    open_for,
-)
+from tpdeb.services.logs import rate_limited
+from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
 from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
+from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
 
@@ -299,11 +284,9 @@ class ActorService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(ActorServiceConfig, argv, PROG,
-                         "TPDEB actor: steps environments, sends fragments to the replay server.")
-        setup_logging(config.log_level)
+        config = configure(ActorServiceConfig, argv, PROG,
+                           "TPDEB actor: steps environments, sends fragments to the replay server.")
         seed_everything(config.seed + 1000 * config.actor_id)
         envs = make_vector_env(config.env_id, config.num_envs)  # an unknown env id fails here
         obs_dim, act_dim, _, _ = space_dims(envs)

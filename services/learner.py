@@ -45,20 +45,14 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import LearnerServiceConfig
-from tpdeb.services.logs import rate_limited, setup_logging
+from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.model_wire import model_for, params_message
-from tpdeb.services.net.session import (
-    StopSignal,
-    close_session,
-    declare_publisher,
-    fail,
-    fetch_spec,
-    open_for,
-)
+from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
 from tpdeb.services.net.wire import batch_of, finite_values
+from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.services.store.checkpoint import (
     FINAL,
@@ -497,11 +491,9 @@ class LearnerService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(LearnerServiceConfig, argv, PROG,
-                         "TPDEB learner: trains from the replay server, publishes parameters.")
-        setup_logging(config.log_level)
+        config = configure(LearnerServiceConfig, argv, PROG,
+                           "TPDEB learner: trains from the replay server, publishes parameters.")
         # The learner shares the machine with actors and the replay server: more intra-op
         # threads than it is given cores makes every update slower, not faster.
         torch.set_num_threads(config.torch_threads)

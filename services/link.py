@@ -22,10 +22,10 @@ import sys
 import time
 from dataclasses import dataclass
 
-from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.logs import setup_logging
+from tpdeb.services.config import ConfigError
 from tpdeb.services.net.security import Security, check_settings
-from tpdeb.services.net.session import check_endpoints, declare_publisher, fail
+from tpdeb.services.net.session import check_endpoints, declare_publisher
+from tpdeb.services.process import configure, fail
 
 PROG = "tpdeb-link"
 log = logging.getLogger(PROG)
@@ -34,6 +34,10 @@ UNLIMITED_CHUNK = 64 * 1024
 
 @dataclass
 class LinkConfig:
+    """The link's settings (its own: it bridges bytes and opens no service session)."""
+
+    SECTION = "link"
+
     listen: str = "tcp/127.0.0.1:7448"
     """actor-side endpoint this link listens on (actors --connect here)"""
     connect: str = "tcp/127.0.0.1:7447"
@@ -289,10 +293,9 @@ def stats_reporter(config: LinkConfig):
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(LinkConfig, argv, PROG,
-                         "Throttled TCP bridge between actors and the learner-side router.")
+        config = configure(LinkConfig, argv, PROG,
+                           "Throttled TCP bridge between actors and the learner-side router.")
         report, close = stats_reporter(config)
     except ConfigError as exc:
         return fail(PROG, exc)

@@ -36,18 +36,13 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.logs import rate_limited, setup_logging
-from tpdeb.services.net.session import (
-    StopSignal,
-    close_session,
-    declare_publisher,
-    fail,
-    open_for,
-)
+from tpdeb.services.logs import rate_limited
+from tpdeb.services.net.session import close_session, declare_publisher, open_for
 from tpdeb.services.net.wire import batch_message, finite_values, message_to_fragment, run_spec
+from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.store.persistence import ReplayPersistence
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
@@ -494,11 +489,9 @@ class ReplayServer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(ReplayServiceConfig, argv, PROG,
-                         "TPDEB replay server: dual prioritized/uniform replay over Zenoh.")
-        setup_logging(config.log_level)
+        config = configure(ReplayServiceConfig, argv, PROG,
+                           "TPDEB replay server: dual prioritized/uniform replay over Zenoh.")
         envs = make_vector_env(config.env_id, 1)
         spec = run_spec(config, *space_dims(envs))
         envs.close()

@@ -11,20 +11,18 @@ from __future__ import annotations
 import logging
 import sys
 
-from tpdeb.services.config import ConfigError, resolve
+from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import RouterConfig
-from tpdeb.services.logs import setup_logging
-from tpdeb.services.net.session import StopSignal, close_session, fail, open_for
+from tpdeb.services.net.session import close_session, open_for
+from tpdeb.services.process import StopSignal, configure, fail
 
 PROG = "tpdeb-router"
 log = logging.getLogger(PROG)
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(RouterConfig, argv, PROG, "TPDEB router: the Zenoh router of a run.")
-        setup_logging(config.log_level)
+        config = configure(RouterConfig, argv, PROG, "TPDEB router: the Zenoh router of a run.")
         session = open_for(config, "router")
     except ConfigError as exc:
         return fail(PROG, exc)

@@ -20,7 +20,7 @@ import time
 import torch
 
 from tpdeb.services.actor import ActorService
-from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import (
     ActorServiceConfig,
@@ -30,10 +30,9 @@ from tpdeb.services.config.service import (
 from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.learner import LearnerService
-from tpdeb.services.logs import setup_logging
 from tpdeb.services.net.memory import MemoryBus
-from tpdeb.services.net.session import StopSignal
 from tpdeb.services.net.wire import run_spec
+from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.replay import ReplayServer
 from tpdeb.services.store.metrics import hyperparameter_table
 
@@ -141,14 +140,12 @@ class SerialRunner:
 
 
 def main(argv: list[str] | None = None) -> int:
-    setup_logging()
     try:
-        config = resolve(TrainConfig, argv, PROG,
-                         "Train TPDEB in one process (replay, learner and actor in memory).")
+        config = configure(TrainConfig, argv, PROG,
+                           "Train TPDEB in one process (replay, learner and actor in memory).")
         runner = SerialRunner(config)
     except ConfigError as exc:
-        log.error(f"error: {exc}")
-        return 2
+        return fail(PROG, exc)
     result = runner.run()
     return 130 if result["interrupted"] else 0
 

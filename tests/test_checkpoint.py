@@ -19,8 +19,9 @@ from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import LearnerServiceConfig
 from tpdeb.services.learner import LearnerService
 from tpdeb.services.net.memory import MemoryBus
-from tpdeb.services.net.session import StopSignal, open_session
+from tpdeb.services.net.session import open_session
 from tpdeb.services.net.wire import run_spec
+from tpdeb.services.process import StopSignal
 from tpdeb.services.store import checkpoint as ckpt
 from tpdeb.services.store.metrics import MetricsWriter, read_metrics
 from tpdeb.tpdeb_core.fragments import stack_fragments

@@ -13,7 +13,7 @@ from tpdeb.protocol import Keys, Params, decode
 from tpdeb.services import learner as learner_module
 from tpdeb.services.learner import LearnerService
 from tpdeb.services.net.memory import MemoryBus
-from tpdeb.services.net.session import StopSignal
+from tpdeb.services.process import StopSignal
 
 
 @pytest.fixture

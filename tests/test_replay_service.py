@@ -14,8 +14,8 @@ from tpdeb.protocol import Ack, Keys, SampleReply, SampleRequest, decode, encode
 from tpdeb.services.actor import Outbox
 from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.net.memory import MemoryBus, matches
-from tpdeb.services.net.session import StopSignal
 from tpdeb.services.net.wire import run_spec
+from tpdeb.services.process import StopSignal
 from tpdeb.services.replay import ReplayServer
 
 RUN = "mem"

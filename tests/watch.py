@@ -18,7 +18,8 @@ import time
 import zenoh
 
 from tpdeb.protocol import DecodeError, Keys, Stats, decode
-from tpdeb.services.net.session import StopSignal, open_session
+from tpdeb.services.net.session import open_session
+from tpdeb.services.process import StopSignal
 
 lock = threading.Lock()
 

@@ -28,7 +28,7 @@ else:  # pragma: no cover
 
 ENV_PREFIX = "TPDEB_"
 # The tables of a TOML configuration, one per group of settings, in the order files list them.
-SECTIONS = ("run", "actor", "model", "replay", "learner", "loss", "net", "router")
+SECTIONS = ("run", "actor", "model", "replay", "learner", "loss", "net", "router", "link")
 
 
 class ConfigError(ValueError):
@@ -116,7 +116,8 @@ def read_sections(cls, tables: dict, source: str, allowed: set[str] | None = Non
     group's table; the settings of other services' groups are checked and passed over, so one
     file can configure a whole run. `allowed`: the tables this document may have (`why` says
     why not others)."""
-    known = known_settings()
+    known = {**known_settings(), **{f.name: section_of(cls, f.name)
+                                    for f in dataclasses.fields(cls)}}
     sections = set(known.values()) if allowed is None else allowed
     names = {f.name for f in dataclasses.fields(cls)}
     values: dict = {}

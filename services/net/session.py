@@ -1,4 +1,4 @@
-"""Zenoh session setup and the process plumbing every service shares (DESIGN §3, "Zenoh facts").
+"""Zenoh session setup every service shares (DESIGN §3, "Zenoh facts").
 
 Topology of the embedded default: the replay server opens a `router`-mode session listening on
 `--listen`; the learner and the actors open `client` sessions connected to it, so everything
@@ -10,10 +10,8 @@ from __future__ import annotations
 
 import json
 import logging
-import signal
 import socket
 import ssl
-import threading
 import time
 
 import zenoh
@@ -259,39 +257,6 @@ def open_for(config, mode: str = "client") -> zenoh.Session:
     """A service's session from its config's listen/connect endpoints and security settings."""
     return open_session(mode, list(config.listen), list(config.connect), config.connect_timeout_s,
                         config.tcp_buffer_bytes, security_of(config))
-
-
-def fail(prog: str, exc: Exception) -> int:
-    """One line on stderr, exit status 2: how every service refuses bad settings."""
-    logging.getLogger(prog).error(f"error: {exc}")
-    return 2
-
-
-class StopSignal:
-    """Set by SIGINT/SIGTERM (or by a stop message); services poll or wait on it."""
-
-    def __init__(self):
-        self.event = threading.Event()
-        self.reason = ""
-
-    def install(self) -> StopSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._on_signal)
-        return self
-
-    def _on_signal(self, signum, _frame) -> None:
-        self.set(signal.Signals(signum).name)
-
-    def set(self, reason: str) -> None:
-        if not self.event.is_set():
-            self.reason = reason
-            self.event.set()
-
-    def __bool__(self) -> bool:
-        return self.event.is_set()
-
-    def wait(self, timeout_s: float) -> bool:
-        return self.event.wait(timeout_s)
 
 
 def close_session(session, prog: str) -> None:
