@@ -52,8 +52,13 @@ def field_docs(cls) -> dict[str, str]:
     return docs
 
 
+@functools.cache
+def _hints(cls) -> dict:
+    return typing.get_type_hints(cls)
+
+
 def _field_type(cls, name: str):
-    hint = typing.get_type_hints(cls)[name]
+    hint = _hints(cls)[name]
     origin = typing.get_origin(hint)
     if origin in (typing.Union, types.UnionType):  # Optional[X] -> X
         args = [a for a in typing.get_args(hint) if a is not type(None)]
