@@ -17,6 +17,8 @@ from tpdeb.protocol.messages import (
     Ack,
     Batch,
     Control,
+    JoinReply,
+    JoinRequest,
     Moments,
     Params,
     PriorityUpdate,
@@ -29,6 +31,7 @@ from tpdeb.protocol.messages import (
 
 __all__ = [
     "ERROR_KINDS", "MESSAGE_TYPES", "SCHEMA_VERSION", "Ack", "Batch", "Control", "DecodeError",
-    "Keys", "Moments", "Params", "PriorityUpdate", "RunSpec", "SampleReply", "SampleRequest",
-    "Stats", "Trajectory", "check_params_shapes", "decode", "encode", "encoded_size_limit",
+    "JoinReply", "JoinRequest", "Keys", "Moments", "Params", "PriorityUpdate", "RunSpec",
+    "SampleReply", "SampleRequest", "Stats", "Trajectory", "check_params_shapes", "decode",
+    "encode", "encoded_size_limit",
 ]

@@ -49,6 +49,7 @@ class Keys:
         self.priorities = f"{p}/priorities"
         self.spec = f"{p}/spec"
         self.control = f"{p}/control"
+        self.join = f"{p}/join"
         self.stats_all = f"{p}/stats/**"
         self.alive_all = f"{p}/alive/**"
 

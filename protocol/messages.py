@@ -253,6 +253,21 @@ class Control:
     reason: str = wire(Str(), default="")
 
 
+@dataclass
+class JoinRequest:
+    """Actor → replay: a free actor id, please (`--actor-id auto`: identical replicas)."""
+
+    nonce: int = wire(Int(ge=0))  # the asker's random number: a repeated ask gets the same id
+
+
+@dataclass
+class JoinReply:
+    """Replay → actor: the id to act under, held by no other actor the replay knows of."""
+
+    actor_id: int = wire(Int(le=MAX_ACTOR_ID))
+    nonce: int = wire(Int(ge=0))
+
+
 MESSAGE_TYPES: dict[str, type] = {cls.__name__: cls for cls in (
     RunSpec, Trajectory, Ack, Params, SampleRequest, SampleReply, Batch, Moments, PriorityUpdate,
-    Stats, Control)}
+    Stats, Control, JoinRequest, JoinReply)}

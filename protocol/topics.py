@@ -58,6 +58,8 @@ TOPICS: tuple[Topic, ...] = (
           why="for monitors; latest wins, put only when someone subscribes"),
     Topic("spec", "query", (m.RunSpec,), ("replay",), ("learner", "actor", "monitor"),
           why="peers refuse a run whose spec differs from theirs"),
+    Topic("join", "query", (m.JoinRequest, m.JoinReply), ("replay",), ("actor",),
+          why="--actor-id auto: the lowest id no actor of the run holds"),
     Topic("control", "put", (m.Control,), ("learner",), ("replay", "actor", "monitor"),
           priority="interactive_high", congestion="block", why="the stop broadcast"),
     Topic("stats", "put", (m.Stats,), ("replay", "learner", "actor", "link"),
@@ -118,7 +120,9 @@ def _producer_grants(topic: Topic, key: str, heard_by: str) -> list[tuple[str, s
     if topic.kind == "query":
         return [("declare_queryable", "ingress", key), ("query", "egress", key),
                 ("reply", "ingress", key)]
-    return [("liveliness_token", "ingress", key)]
+    # A holder may also ask whether its own token is live (tpdeb-health, as the service's user).
+    return [("liveliness_token", "ingress", key), ("liveliness_query", "ingress", key),
+            ("reply", "egress", key), ("liveliness_token", "egress", key)]
 
 
 def _consumer_grants(topic: Topic, key: str) -> list[tuple[str, str, str]]:

@@ -17,18 +17,37 @@ from __future__ import annotations
 import logging
 import secrets
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import zenoh
 
-from tpdeb.protocol import Ack, Control, DecodeError, Keys, Params, Stats, decode, encode
+from tpdeb.protocol import (
+    Ack,
+    Control,
+    DecodeError,
+    JoinReply,
+    JoinRequest,
+    Keys,
+    Params,
+    Stats,
+    decode,
+    encode,
+)
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import ActorServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.logs import rate_limited
-from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
+from tpdeb.services.net.session import (
+    ask_replay,
+    close_session,
+    declare_publisher,
+    fetch_spec,
+    open_for,
+)
 from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
@@ -99,16 +118,17 @@ class ActorService:
         self.params_wanted = threading.Event()
         self.puller = threading.Thread(target=self._pull_params, daemon=True, name="params")
         self.params_cancel = zenoh.CancellationToken()
+        self.actor_id = int(config.actor_id)  # `auto` is resolved before (join_run)
         s, k = session, self.keys
         # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
         # outbox bounds how much can wait; wait_before_close is set far above that).
-        self.traj_publisher = declare_publisher(s, "traj", k.traj(config.actor_id))
-        self.stats_publisher = declare_publisher(s, "stats", k.stats("actor", config.actor_id))
+        self.traj_publisher = declare_publisher(s, "traj", k.traj(self.actor_id))
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("actor", self.actor_id))
         self.subscribers = [
-            s.declare_subscriber(k.ack(config.actor_id), self._on_ack),
+            s.declare_subscriber(k.ack(self.actor_id), self._on_ack),
             s.declare_subscriber(k.control, self._on_control),
         ]
-        self.token = s.liveliness().declare_token(k.alive("actor", config.actor_id))
+        self.token = s.liveliness().declare_token(k.alive("actor", self.actor_id))
         # The replay server (re)appearing — a restart, or this actor reconnecting after a
         # partition — means acks may have been lost: resend the outbox at once.
         self.replay_watch = s.liveliness().declare_subscriber(
@@ -203,7 +223,7 @@ class ActorService:
             cfg, spec = self.config, self.spec
             self.collector = Collector(
                 self.envs, policy, spec.fragment_len, spec.gamma, spec.action_low,
-                spec.action_high, seed=cfg.seed + 1000 * cfg.actor_id, actor_id=cfg.actor_id,
+                spec.action_high, seed=cfg.seed + 1000 * self.actor_id, actor_id=self.actor_id,
                 policy_version=message.version)
         else:
             self.collector.set_policy(policy, message.version)
@@ -219,7 +239,7 @@ class ActorService:
         self.wait_for_params()
         self.params_wanted.set()
         self.puller.start()
-        log.info(f"actor {cfg.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
+        log.info(f"actor {self.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
                   f"v{self.collector.policy_version}")
         last_stats = last_check = time.monotonic()
         last_steps = 0
@@ -264,7 +284,7 @@ class ActorService:
         episodes = self.collector.episodes
         self.collector.episodes = []
         self.stats_publisher.put(encode(Stats(
-            role="actor", ident=str(self.config.actor_id),
+            role="actor", ident=str(self.actor_id),
             values={"env_steps": self.collector.env_steps, "sps": sps,
                     "param_version": self.collector.policy_version, "sent": self.sent,
                     "acked": self.outbox.acked, "resent": self.resent,
@@ -283,11 +303,26 @@ class ActorService:
         self.envs.close()
 
 
+def join_run(session, keys: Keys, timeout_s: float, stop) -> int:
+    """`--actor-id auto`: the id the replay server hands this process (DESIGN §5)."""
+    nonce = secrets.randbits(62)
+    answer = ask_replay(session, keys, keys.join, JoinReply, timeout_s, stop,
+                        payload=encode(JoinRequest(nonce)), what="actor id")
+    if answer.nonce != nonce:
+        raise ConfigError(f"the replay server answered another actor's join ({answer.nonce})")
+    return answer.actor_id
+
+
+def actor_id_file(run_id: str) -> Path:
+    """Where an actor with `--actor-id auto` notes the id it got, for tpdeb-health (one actor
+    per container: the file is the container's)."""
+    return Path(tempfile.gettempdir()) / f"tpdeb-{run_id}-actor.id"
+
+
 def main(argv: list[str] | None = None) -> int:
     try:
         config = configure(ActorServiceConfig, argv, PROG,
                            "TPDEB actor: steps environments, sends fragments to the replay server.")
-        seed_everything(config.seed + 1000 * config.actor_id)
         envs = make_vector_env(config.env_id, config.num_envs)  # an unknown env id fails here
         obs_dim, act_dim, _, _ = space_dims(envs)
         session = open_for(config)
@@ -296,10 +331,16 @@ def main(argv: list[str] | None = None) -> int:
     stop = StopSignal().install()
     service = None
     try:
-        spec = fetch_spec(session, Keys(config.run_id), config.connect_timeout_s, stop)
+        keys = Keys(config.run_id)
+        spec = fetch_spec(session, keys, config.connect_timeout_s, stop)
         problem = spec_mismatch(spec, config.env_id, obs_dim, act_dim)
         if problem:
             raise ConfigError(f"run spec mismatch: {problem}")
+        if config.actor_id == "auto":
+            config.actor_id = str(join_run(session, keys, config.connect_timeout_s, stop))
+            actor_id_file(config.run_id).write_text(config.actor_id)
+            log.info(f"actor id {config.actor_id} from the replay server (--actor-id auto)")
+        seed_everything(config.seed + 1000 * int(config.actor_id))
         service = ActorService(config, spec, envs, session, stop)
         service.run()
     except ConfigError as exc:

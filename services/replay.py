@@ -11,6 +11,7 @@ log on disk, and snapshots of the whole state are written in the background
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import shutil
@@ -26,6 +27,8 @@ from tpdeb.protocol import (
     Ack,
     Control,
     DecodeError,
+    JoinReply,
+    JoinRequest,
     Keys,
     Moments,
     PriorityUpdate,
@@ -177,7 +180,9 @@ class ReplayServer:
         self.queryables = [
             s.declare_queryable(k.sample, lambda q: self.inbox.put(("sample", q))),
             s.declare_queryable(k.spec, self._answer_spec),
+            s.declare_queryable(k.join, lambda q: self.inbox.put(("join", q))),
         ]
+        self.joined: dict[int, int] = {}  # nonce → the actor id this process handed out
         self.ack_publishers: dict[int, object] = {}
         self.stats_publisher = declare_publisher(s, "stats", k.stats("replay", 0))
         self.token = s.liveliness().declare_token(k.alive("replay", 0))
@@ -217,8 +222,8 @@ class ReplayServer:
             self.snapshot()
 
     def _handle(self, kind: str, item) -> None:
-        if kind == "sample":
-            self._take_sample_request(item)
+        if kind in ("sample", "join"):
+            (self._take_sample_request if kind == "sample" else self._answer_join)(item)
             return
         payload = item.payload.to_bytes()
         sender = str(item.key_expr)
@@ -392,6 +397,27 @@ class ReplayServer:
             query.drop()
             return
         self.waiting.append((time.monotonic(), query, request))
+
+    def _answer_join(self, query) -> None:
+        """`--actor-id auto`: the lowest id no actor known to this replay holds (one that has
+        sent fragments, or was handed out); the same again to a repeated ask."""
+        try:
+            request = decode(query.payload.to_bytes() if query.payload is not None else b"",
+                             JoinRequest)
+        except DecodeError as exc:
+            self.reject(exc.kind, "a join request", exc.detail)
+            query.drop()
+            return
+        actor_id = self.joined.get(request.nonce)
+        if actor_id is None:
+            taken = set(self.ledgers) | set(self.joined.values())
+            actor_id = next(i for i in itertools.count() if i not in taken)
+            self.joined[request.nonce] = actor_id
+            log.info(f"actor id {actor_id} handed out (--actor-id auto)")
+        try:
+            query.reply(self.keys.join, encode(JoinReply(actor_id, request.nonce)))
+        finally:
+            query.drop()
 
     def _serve_waiting(self) -> None:
         batch_steps = self.config.batch_fragments * self.spec.fragment_len

@@ -15,7 +15,7 @@ from tpdeb.services.launcher.plan import free_port  # noqa: F401 (the tests take
 
 ROOT = Path(__file__).resolve().parents[1]
 MODULES = {**{name: f"tpdeb.services.{name}"
-              for name in ("replay", "learner", "actor", "cluster", "router", "link")},
+              for name in ("replay", "learner", "actor", "cluster", "router", "link", "health")},
            "certs": "tpdeb.services.net.certs"}
 
 

@@ -175,3 +175,19 @@ def test_every_process_reads_back_the_file_it_would_write(tmp_path):
     path = tmp_path / "link.toml"
     path.write_text("[link]\nup_bytes_per_s = 1e6\n")
     assert resolve(LinkConfig, ["--config", str(path)], "p", "").up_bytes_per_s == 1e6
+
+
+def test_a_password_comes_from_a_secret_file_and_no_copy_of_the_config_keeps_it(tmp_path):
+    from tpdeb.services.config.service import NetConfig
+
+    secret = tmp_path / "actor_password"
+    secret.write_text("s3cret\n")
+    config = NetConfig(user="actor-0", password_file=str(secret))
+    assert config.secret_password == "s3cret" and "s3cret" not in to_toml(config)
+    with pytest.raises(ConfigError, match="both set"):
+        NetConfig(user="actor-0", password="x", password_file=str(secret))
+    secret.write_text("\n")
+    with pytest.raises(ConfigError, match="first line is empty"):
+        NetConfig(user="actor-0", password_file=str(secret))
+    with pytest.raises(ConfigError, match="cannot read it"):
+        NetConfig(user="actor-0", password_file=str(tmp_path / "missing"))

@@ -114,7 +114,7 @@ def entry_points() -> dict[str, str]:
 def test_the_entry_points_are_known():
     assert entry_points().keys() >= TORCH_ENTRY_POINTS
     assert {"tpdeb-actor", "tpdeb-replay", "tpdeb-router", "tpdeb-link",
-            "tpdeb-cluster"} <= entry_points().keys()
+            "tpdeb-cluster", "tpdeb-health"} <= entry_points().keys()
 
 
 def test_only_the_training_and_evaluating_entry_points_import_torch():

@@ -18,6 +18,8 @@ from tpdeb.protocol import (
     Batch,
     Control,
     DecodeError,
+    JoinReply,
+    JoinRequest,
     Keys,
     Moments,
     Params,
@@ -102,6 +104,8 @@ MESSAGES = {
     "Stats": Stats("actor", "3", {"charts/SPS": 812.5, "env_steps": 1024, "env_id": "Hopper-v5"},
                    np.array([10.5, 3.0]), np.array([100, 30], np.int64)),
     "Control": Control("stop", "user pressed Ctrl-C"),
+    "JoinRequest": JoinRequest(2**62 + 5),
+    "JoinReply": JoinReply(7, 2**62 + 5),
 }
 
 

@@ -10,8 +10,17 @@ import numpy as np
 import pytest
 
 from tests.test_protocol import ACT_DIM, OBS_DIM, T, make_traj
-from tpdeb.protocol import Ack, Keys, SampleReply, SampleRequest, decode, encode
-from tpdeb.services.actor import Outbox
+from tpdeb.protocol import (
+    Ack,
+    JoinReply,
+    JoinRequest,
+    Keys,
+    SampleReply,
+    SampleRequest,
+    decode,
+    encode,
+)
+from tpdeb.services.actor import Outbox, join_run
 from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.net.memory import MemoryBus, matches
 from tpdeb.services.net.wire import run_spec
@@ -117,3 +126,20 @@ def test_the_outbox_holds_back_pressure_and_resends_what_is_not_acknowledged():
     assert outbox.wait_for_room(0.0) and len(outbox) == 1 and outbox.acked == 1
     outbox.make_all_due()  # the replay server came back: everything goes again
     assert outbox.due(now=1.4, after_s=1.0) == [(1, b"b")]
+
+
+def test_auto_actor_ids_are_the_lowest_free_and_the_same_to_a_repeated_ask(replay):
+    server, bus = replay
+    bus.pump = lambda: server.poll(0.0)  # the replay answers while a query waits
+    session, keys = bus.session(), Keys(RUN)
+    assert [join_run(session, keys, 5.0, StopSignal()) for _ in range(2)] == [0, 1]
+    send(bus, make_traj(seed=0), actor_id=3)
+    server.poll(0.0)
+    assert 3 in server.ledgers  # an actor that sent fragments holds its id
+    ask = encode(JoinRequest(nonce=77))
+    ids = [decode(next(session.get(keys.join, payload=ask, timeout=5.0)).ok.payload.to_bytes(),
+                  JoinReply).actor_id for _ in range(2)]
+    assert ids == [2, 2]  # the lowest free; asked again (a lost reply), the same
+    assert join_run(session, keys, 5.0, StopSignal()) == 4  # 3 is taken by the sender
+    assert not list(session.get(keys.join, payload=b"garbage", timeout=0.5))
+    assert server.bad and sum(server.bad.values()) == 1

@@ -387,7 +387,7 @@ def test_access_control_is_default_deny_with_one_policy_per_user():
     assert keys("actor-1", "declare_subscriber", "ingress") == {r.ack(1), r.control}
     assert not keys("actor-0", "declare_queryable", "ingress")
     assert keys("learner", "declare_queryable", "ingress") == {r.params_latest}
-    assert keys("replay", "declare_queryable", "ingress") == {r.sample, r.spec}
+    assert keys("replay", "declare_queryable", "ingress") == {r.sample, r.spec, r.join}
     assert keys("replay", "put", "ingress") == {r.ack_all, r.stats("replay", 0)}
     assert keys("link", "put", "ingress") == {r.stats("link", 0)}
     assert keys("monitor", "put", "ingress") == set()

@@ -226,3 +226,35 @@ def test_a_session_close_that_times_out_does_not_fail_a_finished_process(capsys)
     close_session(Stuck(), "tpdeb-learner")  # no exception: the process exits as it would
     out = capsys.readouterr().out.strip().splitlines()
     assert len(out) == 1 and "close operation timed out!" in out[0] and "close.rs" not in out[0]
+
+
+def test_health_follows_each_services_token_and_auto_ids_are_unique(procs, endpoint, tmp_path):
+    """`tpdeb-health ROLE` (a container's healthcheck) from the service's own variables:
+    1 before the replay serves, 0 once it holds its token; identical actors started with
+    `--actor-id auto` get distinct ids from the replay and each holds its own token."""
+    env = {"TPDEB_RUN_ID": "t", "TPDEB_CONNECT": endpoint}
+
+    def health(role: str, *flags: str) -> tuple[int, str]:
+        proc = procs.spawn("health", role, "--timeout-s", "2", *flags, env=env,
+                           name=f"health-{role}-{len(procs.started)}")
+        return proc.wait(60), procs.output(proc)
+
+    code, out = health("replay")
+    assert code == 1 and "no Zenoh router answered" in out, out
+    start_replay(procs, endpoint, tmp_path)
+    assert health("replay")[0] == 0
+    assert health("router", "--listen", endpoint)[0] == 0  # the replay's router takes connections
+    code, out = health("learner")
+    assert code == 1 and "holds no token tpdeb/t/alive/learner/0" in out, out
+    actors = [procs.spawn("actor", "--actor-id", "auto", "--num-envs", "1", "--env-id", ENV,
+                          env=env, name=f"actor-auto-{i}") for i in range(2)]
+    for actor in actors:
+        procs.wait_for_line(actor, "from the replay server (--actor-id auto)")
+    ids = sorted(int(procs.output(a).split("actor id ")[1].split()[0]) for a in actors)
+    assert ids == [0, 1]
+    deadline = time.monotonic() + 30
+    while time.monotonic() < deadline and [health("actor", "--actor-id", str(i))[0]
+                                           for i in ids] != [0, 0]:
+        time.sleep(0.5)
+    assert [health("actor", "--actor-id", str(i))[0] for i in ids] == [0, 0]
+    assert health("actor", "--actor-id", "7")[0] == 1

@@ -70,6 +70,9 @@ class NetConfig:
     """password of --user: set it as TPDEB_PASSWORD, not as a flag (every user of the machine
     sees a process's arguments in ps). It is kept out of every copy of the config (run dir,
     checkpoints, TensorBoard)"""
+    password_file: str = ""
+    """file whose first line is the password of --user (a Docker or Kubernetes secret, e.g.
+    /run/secrets/actor_password), instead of TPDEB_PASSWORD"""
 
     def __post_init__(self):
         chain_post_init(NetConfig, self)  # the training groups', in a ServiceConfig
@@ -79,6 +82,10 @@ class NetConfig:
             raise ConfigError(f"log_level={self.log_level!r}: expected one of {', '.join(LEVELS)}")
         if self.connect_timeout_s <= 0:
             raise ConfigError(f"connect_timeout_s={self.connect_timeout_s}: must be > 0")
+        if self.password_file:
+            if self.password:
+                raise ConfigError("password and password_file are both set: keep one")
+            self.password = read_password_file(self.password_file)
         check_settings(self.listen, self.connect, self.tls_ca, self.tls_cert, self.tls_key,
                        self.user, self.password)
         # Services write their config into the run dir and their checkpoints; the password
@@ -198,9 +205,10 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
 
     SECTION = "actor"
 
-    actor_id: int = 0
-    """this actor's id (unique in the run): its key is traj/{actor_id}, its envs' seeds
-    seed + 1000·actor_id + i"""
+    actor_id: str = "0"
+    """this actor's id, unique in the run (its key is traj/{actor_id}, its envs' seeds
+    seed + 1000·actor_id + i) | auto: the replay server hands out the lowest id no actor of
+    the run holds, for identical replicas (docker compose --scale); do not mix with fixed ids"""
     outbox_fragments: int = 0
     """fragments sent but not yet acknowledged; at this bound the actor waits (back-pressure).
     0 means 2 × num_envs: one round of fragments in flight while the next is collected"""
@@ -209,13 +217,26 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
 
     def __post_init__(self):
         super().__post_init__()
-        if not 0 <= self.actor_id < 2**31:
-            raise ConfigError(f"actor_id={self.actor_id}: must be in [0, 2^31)")
+        self.actor_id = str(self.actor_id).strip()
+        if self.actor_id != "auto" and not (
+                self.actor_id.isdigit() and 0 <= int(self.actor_id) < 2**31):
+            raise ConfigError(f"actor_id={self.actor_id!r}: must be auto or an integer in "
+                              "[0, 2^31)")
         if self.outbox_fragments < 0:
             raise ConfigError(f"outbox_fragments={self.outbox_fragments}: must be ≥ 0")
         self.outbox_fragments = self.outbox_fragments or 2 * self.num_envs
         if self.resend_after_s <= 0:
             raise ConfigError(f"resend_after_s={self.resend_after_s}: must be > 0")
+
+
+def read_password_file(path: str) -> str:
+    try:
+        lines = Path(path).read_text().splitlines()
+    except OSError as exc:
+        raise ConfigError(f"password_file={path!r}: cannot read it ({exc.strerror})") from None
+    if not lines or not lines[0].strip():
+        raise ConfigError(f"password_file={path!r}: its first line is empty")
+    return lines[0].strip()
 
 
 SERVICE_CONFIGS = {"router": RouterConfig, "replay": ReplayServiceConfig,

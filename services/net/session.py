@@ -272,17 +272,24 @@ def close_session(session, prog: str) -> None:
 
 def fetch_spec(session, keys: Keys, timeout_s: float, stop=None) -> RunSpec:
     """Ask the replay server for the run spec until it answers (or `timeout_s` passes)."""
+    return ask_replay(session, keys, keys.spec, RunSpec, timeout_s, stop, what="run spec")
+
+
+def ask_replay(session, keys: Keys, key: str, message_type, timeout_s: float, stop=None,
+               payload: bytes | None = None, what: str = "answer"):
+    """Query the replay server's `key` until a `message_type` answer arrives; ConfigError if
+    it speaks another schema, answers garbage or is silent for `timeout_s`."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not stop:
-        for reply in session.get(keys.spec, timeout=2.0):
+        for reply in session.get(key, payload=payload, timeout=2.0):
             if reply.ok is not None:
                 try:
-                    return decode(reply.ok.payload.to_bytes(), RunSpec)
+                    return decode(reply.ok.payload.to_bytes(), message_type)
                 except DecodeError as exc:
                     if exc.kind == "version":
                         raise ConfigError(f"the replay server speaks another wire schema: "
                                           f"{exc.detail}; run the same TPDEB version") from None
-                    raise ConfigError(f"bad run spec from the replay server: {exc}") from None
+                    raise ConfigError(f"bad {what} from the replay server: {exc}") from None
         time.sleep(0.2)
     raise ConfigError(f"no replay server answered for run {keys.run_id!r} within {timeout_s:g} s"
                       " (wrong --run-id or --connect?)")
