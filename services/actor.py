@@ -29,8 +29,6 @@ from tpdeb.protocol import (
     Ack,
     Control,
     DecodeError,
-    JoinReply,
-    JoinRequest,
     Keys,
     Params,
     Stats,
@@ -42,10 +40,10 @@ from tpdeb.services.config.service import ActorServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.session import (
-    ask_replay,
     close_session,
     declare_publisher,
     fetch_spec,
+    join_run,
     open_for,
 )
 from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
@@ -301,16 +299,6 @@ class ActorService:
             self.puller.join(timeout=5)
         self.token.undeclare()
         self.envs.close()
-
-
-def join_run(session, keys: Keys, timeout_s: float, stop) -> int:
-    """`--actor-id auto`: the id the replay server hands this process (DESIGN §5)."""
-    nonce = secrets.randbits(62)
-    answer = ask_replay(session, keys, keys.join, JoinReply, timeout_s, stop,
-                        payload=encode(JoinRequest(nonce)), what="actor id")
-    if answer.nonce != nonce:
-        raise ConfigError(f"the replay server answered another actor's join ({answer.nonce})")
-    return answer.actor_id
 
 
 def actor_id_file(run_id: str) -> Path:

@@ -20,9 +20,10 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.actor import Outbox, join_run
+from tpdeb.services.actor import Outbox
 from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.net.memory import MemoryBus, matches
+from tpdeb.services.net.session import join_run
 from tpdeb.services.net.wire import run_spec
 from tpdeb.services.process import StopSignal
 from tpdeb.services.replay import ReplayServer

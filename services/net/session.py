@@ -10,13 +10,14 @@ from __future__ import annotations
 
 import json
 import logging
+import secrets
 import socket
 import ssl
 import time
 
 import zenoh
 
-from tpdeb.protocol import DecodeError, Keys, RunSpec, decode
+from tpdeb.protocol import DecodeError, JoinReply, JoinRequest, Keys, RunSpec, decode, encode
 from tpdeb.protocol.topics import BY_NAME
 from tpdeb.services.config import ConfigError
 from tpdeb.services.net.security import Security, security_of
@@ -273,6 +274,16 @@ def close_session(session, prog: str) -> None:
 def fetch_spec(session, keys: Keys, timeout_s: float, stop=None) -> RunSpec:
     """Ask the replay server for the run spec until it answers (or `timeout_s` passes)."""
     return ask_replay(session, keys, keys.spec, RunSpec, timeout_s, stop, what="run spec")
+
+
+def join_run(session, keys: Keys, timeout_s: float, stop=None) -> int:
+    """`--actor-id auto`: the id the replay server hands this process (DESIGN §5)."""
+    nonce = secrets.randbits(62)
+    answer = ask_replay(session, keys, keys.join, JoinReply, timeout_s, stop,
+                        payload=encode(JoinRequest(nonce)), what="actor id")
+    if answer.nonce != nonce:
+        raise ConfigError(f"the replay server answered another actor's join ({answer.nonce})")
+    return answer.actor_id
 
 
 def ask_replay(session, keys: Keys, key: str, message_type, timeout_s: float, stop=None,
