@@ -31,14 +31,16 @@ class Procs:
     def spawn(self, role: str, *args: str, name: str | None = None,
               env: dict[str, str] | None = None) -> subprocess.Popen:
         """`env`: extra variables (e.g. TPDEB_PASSWORD, which must not appear in argv)."""
-        name = name or role
+        return self.spawn_command([sys.executable, "-m", MODULES[role], *args], name or role,
+                                  {**os.environ, **(env or {})})
+
+    def spawn_command(self, argv: list[str], name: str, env: dict[str, str]) -> subprocess.Popen:
+        """`argv` in its own process group with exactly `env`, its output in {name}.log."""
         log = self.log_dir / f"{name}.log"
-        env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
         with log.open("w") as out:
             proc = subprocess.Popen(
-                [sys.executable, "-m", MODULES[role], *args], cwd=ROOT, stdout=out,
-                stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                start_new_session=True)
+                argv, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                env={**env, "PYTHONUNBUFFERED": "1"}, start_new_session=True)
         self.started.append(proc)
         self.logs[proc.pid] = log
         return proc

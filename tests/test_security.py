@@ -433,6 +433,29 @@ def test_certs_command_writes_a_ca_and_a_router_certificate(tmp_path, capsys):
     assert stat.S_IMODE((target / "router.key").stat().st_mode) == 0o600
 
 
+def test_certs_command_writes_passwords_the_router_and_each_service_read(tmp_path, capsys):
+    target = tmp_path / "secrets"
+    argv = [str(target), "--users", "replay,learner,actor"]
+    assert certs_cli.main(argv) == 0
+    users = read_auth_file(target / "users.txt")
+    assert sorted(users) == ["actor", "learner", "replay"] and len(set(users.values())) == 3
+    for user, password in users.items():
+        path = target / f"{user}.password"
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        config = NetConfig(user=user, password_file=str(path), connect=("tls/router:7447",),
+                           tls_ca=str(target / "ca.pem"))
+        assert config.secret_password == password
+    assert stat.S_IMODE((target / "users.txt").stat().st_mode) == 0o600
+    RouterConfig(auth_file=str(target / "users.txt"))  # the router accepts it as it is
+    capsys.readouterr()
+    assert certs_cli.main([*argv, "--if-missing"]) == 0  # an init step at every start
+    assert "nothing written" in capsys.readouterr().out
+    assert read_auth_file(target / "users.txt") == users
+    assert certs_cli.main([*argv, "--users", "replay,learner,actor,monitor", "--if-missing"]) == 0
+    assert "monitor" in read_auth_file(target / "users.txt")  # incomplete: all written anew
+    assert certs_cli.main(argv) == 2 and "--force" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--hosts", "127.0.0.1,exa_mple.org"], "'exa_mple.org' is neither an IP address nor a "
      "DNS name"),

@@ -1,13 +1,17 @@
 """`tpdeb-certs`: a private certificate authority and a router certificate for `tls/` endpoints.
 
-    tpdeb-certs DIR [--hosts 127.0.0.1,localhost] [--days 365] [--force]
+    tpdeb-certs DIR [--hosts 127.0.0.1,localhost] [--days 365] [--users U,…]
+                    [--force | --if-missing]
 
 writes `ca.pem`/`ca.key` (a self-signed CA) and `router.pem`/`router.key` (the router's
 certificate, signed by that CA, naming every host as a DNS or IP subject alternative name).
 Services get `--tls-ca DIR/ca.pem`; the router gets `--tls-cert DIR/router.pem --tls-key
 DIR/router.key`. Clients check the router's name against those hosts, so list every name or
-address they connect to. Keys are written 0600 and existing files are never replaced without
-`--force`.
+address they connect to. `--users replay,learner,actor` also writes a random password per user,
+`{user}.password`, and the router's dictionary of them, `users.txt` (its `--auth-file`); each
+service reads its own with `--password-file`. Keys and passwords are written 0600 and existing
+files are never replaced without `--force` (`--if-missing` leaves a complete set as it is: an
+init step run at every start).
 """
 
 from __future__ import annotations
@@ -160,8 +164,32 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="comma-separated names and addresses clients reach the router by "
                    "(default: %(default)s)")
     p.add_argument("--days", default="365", help="validity in days (default: %(default)s)")
-    p.add_argument("--force", action="store_true", help="replace existing files")
+    p.add_argument("--users", default="", help="comma-separated users to write a password for "
+                   "({user}.password) and the router's users.txt")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--force", action="store_true", help="replace existing files")
+    mode.add_argument("--if-missing", action="store_true",
+                      help="do nothing when DIR already holds every file")
     return p.parse_args(argv)
+
+
+def write_passwords(directory: str | Path, users: list[str], force: bool = False) -> dict:
+    """A random password per user in `directory` ({user}.password) and the router's users.txt,
+    all readable by their owner only."""
+    from tpdeb.services.net.security import new_passwords, write_auth_file
+
+    directory = Path(directory)
+    passwords = new_passwords(users)
+    paths = {f"{user}.password": directory / f"{user}.password" for user in passwords}
+    existing = [str(p) for p in (*paths.values(), directory / "users.txt") if p.exists()]
+    if existing and not force:
+        raise ConfigError(f"{', '.join(existing)} already exist(s): pass --force to replace them")
+    directory.mkdir(parents=True, exist_ok=True)
+    for user, password in passwords.items():
+        paths[f"{user}.password"].unlink(missing_ok=True)
+        _write(paths[f"{user}.password"], f"{password}\n".encode(), 0o600)
+    paths["users.txt"] = write_auth_file(directory / "users.txt", passwords)
+    return paths
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -172,7 +200,14 @@ def main(argv: list[str] | None = None) -> int:
         except ValueError:
             raise ConfigError(f"--days {args.days!r}: must be a whole number of days in "
                               f"[1, {MAX_DAYS}]") from None
-        paths = write_certs(args.dir, parse_hosts(args.hosts), days, args.force)
+        users = [u.strip() for u in args.users.split(",") if u.strip()]
+        wanted = [*FILES, *(f"{u}.password" for u in users), *(["users.txt"] if users else [])]
+        if args.if_missing and all((Path(args.dir) / name).is_file() for name in wanted):
+            print(f"{PROG}: {args.dir} holds every file already; nothing written")
+            return 0
+        paths = write_certs(args.dir, parse_hosts(args.hosts), days, args.force or args.if_missing)
+        if users:
+            paths.update(write_passwords(args.dir, users, args.force or args.if_missing))
     except ConfigError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
@@ -181,8 +216,10 @@ def main(argv: list[str] | None = None) -> int:
               file=sys.stderr)
         return 2
     print(f"{PROG}: wrote {', '.join(str(p) for p in paths.values())}")
-    print(f"{PROG}: router: --tls-cert {paths['router.pem']} --tls-key {paths['router.key']}; "
-          f"every service: --tls-ca {paths['ca.pem']}")
+    auth = f" --auth-file {paths['users.txt']}" if users else ""
+    user = f" --user U --password-file {args.dir}/U.password" if users else ""
+    print(f"{PROG}: router: --tls-cert {paths['router.pem']} --tls-key {paths['router.key']}"
+          f"{auth}; every service: --tls-ca {paths['ca.pem']}{user}")
     return 0
 
 
