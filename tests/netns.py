@@ -160,7 +160,50 @@ class Namespaces:
                 problems.append(f"ip netns del {ns}: {done.stderr.strip()}")
         listed = run("ip", "netns", "list").stdout.split()
         problems += [f"namespace {ns} still listed" for ns in self.created if ns in listed]
-        for ns in (self.a, self.b):
+        for ns in self.created:
             if pids := pids_with(ns):
                 problems.append(f"processes mentioning {ns}: {pids}")
         return problems
+
+
+class Hosts(Namespaces):
+    """Namespaces as hosts on one LAN: the first holds a bridge with its address, each other
+    one a veth port on it. `address[name]` is each host's address on that LAN."""
+
+    def __init__(self, log_dir: Path, names: tuple[str, ...], net: str = "10.233"):
+        super().__init__(log_dir, tag="hosts", net=net)
+        pid = os.getpid()
+        subnet = 10 + pid % 240
+        self.names = names
+        self.ns = {name: f"tpdeb-{name}-{pid}" for name in names}
+        self.address = {name: f"{net}.{subnet}.{i + 1}" for i, name in enumerate(names)}
+
+    def create(self, mtu: int | None = None) -> None:
+        hub, *others = self.names
+        for name in self.names:
+            must("ip", "netns", "add", self.ns[name])
+            self.created.append(self.ns[name])
+            must("ip", "-n", self.ns[name], "link", "set", "lo", "up")
+        must("ip", "-n", self.ns[hub], "link", "add", "br0", "type", "bridge")
+        must("ip", "-n", self.ns[hub], "addr", "add", f"{self.address[hub]}/24", "dev", "br0")
+        must("ip", "-n", self.ns[hub], "link", "set", "br0", "up")
+        for i, name in enumerate(others):
+            port = f"port{i}"
+            must("ip", "-n", self.ns[hub], "link", "add", port, "type", "veth", "peer", "name",
+                 "eth0", "netns", self.ns[name])
+            must("ip", "-n", self.ns[hub], "link", "set", port, "master", "br0", "up")
+            must("ip", "-n", self.ns[name], "addr", "add", f"{self.address[name]}/24", "dev",
+                 "eth0")
+            must("ip", "-n", self.ns[name], "link", "set", "eth0", "up")
+
+    def run_on(self, host: str, name: str, command: str, cwd: Path,
+               env: dict[str, str]) -> subprocess.Popen:
+        """`bash -c command` on `host`, in `cwd`, with exactly `env`."""
+        log = self.log_dir / f"{name}-{len(self.started)}.log"
+        with log.open("w") as out:
+            proc = subprocess.Popen(["ip", "netns", "exec", self.ns[host], "bash", "-c", command],
+                                    cwd=cwd, stdout=out, stderr=subprocess.STDOUT,
+                                    stdin=subprocess.DEVNULL, env=env, start_new_session=True)
+        self.started.append(proc)
+        self.logs[proc.pid] = log
+        return proc
