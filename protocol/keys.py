@@ -68,6 +68,10 @@ class Keys:
     def alive(self, role: str, ident: str | int) -> str:
         return f"{self.prefix}/alive/{_chunk('role', role)}/{_chunk('ident', ident)}"
 
+    def of_role(self, topic: str, role: str) -> str:
+        """Every key of `topic` (stats, alive) one role's producers use, whatever their ident."""
+        return f"{self.prefix}/{_chunk('topic', topic)}/{_chunk('role', role)}/*"
+
     def actor_id_of(self, key: str) -> int | None:
         """The actor id in this run's …/traj/{n} or …/ack/{n}; None for any other key."""
         key = str(key)  # a Zenoh KeyExpr prints as its text

@@ -72,12 +72,19 @@ TOPICS: tuple[Topic, ...] = (
 BY_NAME = {topic.name: topic for topic in TOPICS}
 
 
+# The ident of a pool: every producer of a role under one user (actors with ids from the
+# replay server or a StatefulSet's ordinal, all as user `actor`).
+ANY = "*"
+
+
 def produced_key(keys: Keys, topic: Topic, role: str, ident: int | str = 0) -> str:
-    """The key a producer (`role`, `ident`) declares for `topic`."""
+    """The key a producer (`role`, `ident`; ANY: any ident) declares for `topic`."""
     if not topic.own_key:
         return all_keys(keys, topic)
     if topic.name == "traj":
-        return keys.traj(ident)
+        return keys.traj_all if ident == ANY else keys.traj(ident)
+    if ident == ANY:
+        return keys.of_role(topic.name, role)
     return getattr(keys, topic.name)(role, ident)  # stats/{role}/{id}, alive/{role}/{id}
 
 
@@ -90,8 +97,8 @@ def all_keys(keys: Keys, topic: Topic) -> str:
 
 def heard_key(keys: Keys, topic: Topic, role: str, ident: int | str = 0) -> str:
     """What a consumer (`role`, `ident`) subscribes to, asks or watches for `topic`."""
-    if topic.name == "ack":  # each actor hears its own acks only
-        return keys.ack(ident)
+    if topic.name == "ack":  # each actor hears its own acks only (a pool: all of them)
+        return keys.ack_all if ident == ANY else keys.ack(ident)
     if topic.kind == "token":
         watched = dict(topic.watch)[role]
         return all_keys(keys, topic) if watched == "all" else keys.alive(watched, 0)

@@ -132,6 +132,7 @@ def test_the_compose_services_run_as_the_engine_would_start_them(procs, tmp_path
     assert "restored" in procs.output(replay), procs.output(replay)
     assert actor_ids(procs, actors) == ["0", "1"]
     assert list((tmp_path / "runs" / "compose" / "checkpoints").glob("final_*.pt"))
+    assert "with TLS, user/password, access control" in procs.output(started["router"])
 
 
 def test_the_dockerfile_pins_cpu_torch_runs_unprivileged_and_installs_every_command():
@@ -236,7 +237,7 @@ def test_the_kubernetes_pods_run_as_the_cluster_would_start_them(procs, tmp_path
             stack.healthy(container["readinessProbe"]["exec"]["command"], env)
         return proc
 
-    run_pod("Deployment/tpdeb-router")
+    router = run_pod("Deployment/tpdeb-router")
     run_pod("Deployment/tpdeb-replay")
     learner = run_pod("Deployment/tpdeb-learner")
     # podManagementPolicy Parallel: the actors start together
@@ -245,3 +246,4 @@ def test_the_kubernetes_pods_run_as_the_cluster_would_start_them(procs, tmp_path
     assert actor_ids(procs, actors) == ["0", "1"]
     assert list((tmp_path / "runs-tpdeb-learner" / "k8s" / "checkpoints").glob("final_*.pt"))
     assert (tmp_path / "runs-tpdeb-replay" / "k8s" / "replay").is_dir()
+    assert "with TLS, user/password, access control" in procs.output(router)

@@ -369,6 +369,23 @@ def test_cluster_trains_with_tls_auth_and_access_control(procs, tmp_path):
 # -- no processes: rules, certificates, settings
 
 
+def test_a_pool_of_actors_under_one_user_acts_as_any_actor_and_nothing_more():
+    acl = access_control("r", ["actor", "actor-0"])
+    rules = {r["id"]: r for r in acl["rules"]}
+
+    def keys(user: str, message: str, flow: str) -> set[str]:
+        return {key for r in rules.values() if r["id"].startswith(f"{user} ")
+                and r["messages"] == [message] and r["flows"] == [flow] for key in r["key_exprs"]}
+
+    r = Keys("r")
+    assert keys("actor", "put", "ingress") == {r.traj_all, r.of_role("stats", "actor")}
+    assert keys("actor", "declare_subscriber", "ingress") == {r.ack_all, r.control}
+    assert keys("actor", "liveliness_token", "ingress") == {r.of_role("alive", "actor")}
+    assert keys("actor", "query", "ingress") == keys("actor-0", "query", "ingress")  # spec, join…
+    assert not keys("actor", "declare_queryable", "ingress")  # never answers for anyone
+    assert not any(r.sample in k or r.priorities in k for k in keys("actor", "put", "ingress"))
+
+
 def test_access_control_is_default_deny_with_one_policy_per_user():
     acl = access_control("r", ROLES + ["actor-0@b"])
     assert acl["enabled"] and acl["default_permission"] == "deny"

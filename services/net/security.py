@@ -1,11 +1,13 @@
 """Who may do what on a run's router: Zenoh access-control rules per user, and the password
 dictionary the router authenticates them with.
 
-Default deny. Each user name is a role of the run — `replay`, `learner`, `actor-{i}`,
+Default deny. Each user name is a role of the run — `replay`, `learner`, `actor-{i}`, `actor`
+(a pool: any actor id, for launchers that hand ids out — `--actor-id auto`, a StatefulSet),
 `monitor` (a watching session such as the cluster's), `link` (the link shim's stats) — or
 `{role}@{run_id}` for a role of another run sharing the router. A user gets exactly the traffic
 its role needs, all under tpdeb/{run_id}/: an actor can only publish its own fragments and
-stats and hear its own acks; nobody but the learner can answer for the parameters.
+stats and hear its own acks (a pool's members, any actor's); nobody but the learner can answer
+for the parameters.
 
 The router applies the rules per remote session: `ingress` is what that session sends (puts,
 declarations, queries, replies, tokens), `egress` what the router hands it (samples for its
@@ -22,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from tpdeb.protocol import Keys
-from tpdeb.protocol.topics import grants
+from tpdeb.protocol.topics import ANY, grants
 from tpdeb.services.config import ConfigError
 
 
@@ -43,7 +45,7 @@ class Security:
         return f"Security({', '.join(f'{k}={v!r}' for k, v in shown.items() if v)})"
 
 
-ROLES = ("replay", "learner", "actor-{i}", "monitor", "link")
+ROLES = ("replay", "learner", "actor-{i}", "actor", "monitor", "link")
 _ACTOR = re.compile(r"actor-(0|[1-9][0-9]{0,9})")
 _USER_TEXT = re.compile(r"[A-Za-z0-9_.@-]{1,128}")
 
@@ -55,6 +57,8 @@ def _grants(keys: Keys, role: str) -> list[tuple[str, str, str]]:
     actor = _ACTOR.fullmatch(role)
     if actor:
         return grants(keys, "actor", int(actor.group(1)))
+    if role == "actor":  # the pool: what any actor may do, under one user
+        return grants(keys, "actor", ANY)
     if role in ("replay", "learner", "monitor", "link"):
         return grants(keys, role, 0)
     raise ConfigError(f"user {role!r} is not a TPDEB role: users are {', '.join(ROLES)} "
