@@ -67,7 +67,14 @@ def main(argv: list[str] | None = None) -> int:
     role, rest, timeout_s = args[0], args[1:], 5.0
     if "--timeout-s" in rest:
         at = rest.index("--timeout-s")
-        timeout_s, rest = float(rest[at + 1]), rest[:at] + rest[at + 2:]
+        try:
+            timeout_s = float(rest[at + 1])
+        except (IndexError, ValueError):
+            timeout_s = 0.0
+        if not timeout_s > 0:
+            print(f"{PROG}: --timeout-s takes a number of seconds > 0\n{USAGE}", file=sys.stderr)
+            return 2
+        rest = rest[:at] + rest[at + 2:]
     try:
         config = configure(SERVICE_CONFIGS[role], rest, f"{PROG} {role}", USAGE)
         why = problem(role, config, timeout_s)

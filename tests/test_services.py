@@ -258,3 +258,12 @@ def test_health_follows_each_services_token_and_auto_ids_are_unique(procs, endpo
         time.sleep(0.5)
     assert [health("actor", "--actor-id", str(i))[0] for i in ids] == [0, 0]
     assert health("actor", "--actor-id", "7")[0] == 1
+
+
+@pytest.mark.parametrize("argv", [[], ["replayer"], ["replay", "--timeout-s"],
+                                  ["replay", "--timeout-s", "0"]])
+def test_health_refuses_bad_usage_with_status_2(argv, capsys):
+    from tpdeb.services import health
+
+    assert health.main(argv) == 2
+    assert "usage: tpdeb-health {router,replay,learner,actor}" in capsys.readouterr().err
