@@ -235,6 +235,8 @@ class ActorService:
     def run(self) -> None:
         cfg = self.config
         self.wait_for_params()
+        if self.collector is None:  # stopped first: the run ended (or was stopped) before it
+            return
         self.params_wanted.set()
         self.puller.start()
         log.info(f"actor {self.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "

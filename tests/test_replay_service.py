@@ -144,3 +144,24 @@ def test_auto_actor_ids_are_the_lowest_free_and_the_same_to_a_repeated_ask(repla
     assert join_run(session, keys, 5.0, StopSignal()) == 4  # 3 is taken by the sender
     assert not list(session.get(keys.join, payload=b"garbage", timeout=0.5))
     assert server.bad and sum(server.bad.values()) == 1
+
+
+def test_an_actor_stopped_before_its_first_parameters_ends_cleanly():
+    """A run that has already ended (a learner resumed past its last step stops at once): the
+    actor hears the stop before any parameters and returns instead of failing."""
+    from tpdeb.services.actor import ActorService
+    from tpdeb.services.config.service import ActorServiceConfig
+    from tpdeb.services.envs import make_vector_env, space_dims
+
+    config = ActorServiceConfig(run_id=RUN, env_id="InvertedPendulum-v5", num_envs=1)
+    envs = make_vector_env(config.env_id, 1)
+    spec = run_spec(ReplayServiceConfig(env_id=config.env_id, persist=False),
+                    *space_dims(envs))
+    stop = StopSignal()
+    actor = ActorService(config, spec, envs, MemoryBus().session(), stop)
+    stop.set("stop message")
+    try:
+        actor.run()
+        assert actor.collector is None and actor.sent == 0
+    finally:
+        actor.close()
