@@ -1,7 +1,8 @@
 """deploy/slurm/tpdeb.sbatch on a real one-node Slurm: munged, slurmctld and slurmd started
 here as root on this machine (their own ports, socket and state directory; stopped by pid when
-the test ends), the batch script submitted with sbatch. The run learns to its end, and a
-second job stopped with scancel stops cleanly (final checkpoint, replay snapshot)."""
+the test ends), the batch script submitted with sbatch. The run learns to its end; a second
+job, requeued while it trains, resumes in its run dir (learner checkpoint, replay snapshot),
+and stopped with scancel stops cleanly (final checkpoint, replay snapshot)."""
 
 from __future__ import annotations
 
@@ -157,6 +158,15 @@ def test_the_batch_script_runs_a_whole_run_and_stops_cleanly_on_scancel(slurm, t
     job = submit(slurm, tmp_path, TPDEB_TOTAL_TIMESTEPS="5000000", **common)
     run_dir = tmp_path / "runs" / f"tpdeb-{job}"
     wait_for(lambda: "SPS" in read(run_dir / "logs" / "learner.log"), 180, "training")
+    # Requeued (a preemption, a node failure): the same job id, run dir and run go on.
+    assert run(slurm, "scontrol", "requeue", job).returncode == 0
+    wait_for(lambda: run(slurm, "squeue", "-h", "-j", job, "-o", "%T").stdout.strip()
+             in ("PENDING", "RUNNING"), 60, "the requeued job")
+    run(slurm, "scontrol", "update", f"jobid={job}", "starttime=now")
+    wait_for(lambda: "resumed from" in read(run_dir / "logs" / "learner.log"), 240,
+             "the learner resuming")
+    wait_for(lambda: read(run_dir / "logs" / "learner.log").count("SPS") >= 2, 120, "training")
+    assert "restored" in read(run_dir / "logs" / "replay.log")
     assert run(slurm, "scancel", job).returncode == 0
     wait_for(lambda: finished(slurm, job), 120, f"end of cancelled job {job}")
     logs = {p.stem: p.read_text() for p in (run_dir / "logs").glob("*.log")}
