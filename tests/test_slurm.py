@@ -36,7 +36,7 @@ def unavailable() -> str | None:
 
 SLURM_CONF = """\
 ClusterName=tpdebtest
-SlurmctldHost={host}
+SlurmctldHost={host}(127.0.0.1)
 SlurmctldPort={ctld_port}
 SlurmdPort={d_port}
 AuthType=auth/munge
@@ -58,7 +58,7 @@ SchedulerType=sched/builtin
 JobCompType=jobcomp/none
 AccountingStorageType=accounting_storage/none
 KillWait=30
-NodeName={host} CPUs={cpus} State=UNKNOWN
+NodeName={host} NodeAddr=127.0.0.1 CPUs={cpus} State=UNKNOWN
 PartitionName=debug Nodes={host} Default=YES MaxTime=INFINITE State=UP OverSubscribe=YES
 """
 
@@ -127,6 +127,10 @@ def wait_for(ready, timeout_s: float, what: str) -> None:
 
 
 def submit(env: dict, cwd: Path, **variables: str) -> str:
+    try:
+        socket.gethostbyname(socket.gethostname())
+    except OSError:  # a machine whose own name does not resolve: the services use loopback
+        variables["TPDEB_ROUTER_HOST"] = "127.0.0.1"
     exports = ",".join(["ALL", *(f"{k}={v}" for k, v in variables.items())])
     done = subprocess.run(["sbatch", "--parsable", "--nodes=1", f"--export={exports}",
                            str(SBATCH)], env=env, cwd=cwd, capture_output=True, text=True,
