@@ -43,6 +43,7 @@ from tpdeb.services.launcher.plan import (
 from tpdeb.services.launcher.restart import RestartTracker
 from tpdeb.services.launcher.status import Display, Health
 from tpdeb.services.net.session import fetch_spec, open_session
+from tpdeb.services.process import StopSignal
 
 
 class Cluster:
@@ -347,10 +348,11 @@ class Cluster:
         if self.display.tty:
             self.display.out.write("\n")
 
-    def interrupt(self, signum, _frame) -> None:
+    def interrupt(self, name: str) -> None:
+        """SIGINT/SIGTERM (from the signal thread, never in the handler: see StopSignal)."""
         self.interrupted = True
         self.stopping.set()
-        self.display.echo(f"[{PROG}] {signal.Signals(signum).name}: stopping the services")
+        self.display.echo(f"[{PROG}] {name}: stopping the services")
 
 
 def user_of(role: str, index: int) -> str:
@@ -395,8 +397,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     cluster = Cluster(plan)
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, cluster.interrupt)
+    StopSignal(on_signal=cluster.interrupt).install()
     code = cluster.run()
     print(f"{PROG}: {'finished' if code == 0 else 'stopped'}; run dir {cluster.run_dir}",
           flush=True)

@@ -3,7 +3,9 @@ at start, one line and exit status 2 for a bad setting, and the stop signal its 
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
 import signal
 import threading
 
@@ -27,27 +29,55 @@ def fail(prog: str, exc: Exception) -> int:
 
 
 class StopSignal:
-    """Set by SIGINT/SIGTERM (or by a stop message); services poll or wait on it."""
+    """Set by SIGINT/SIGTERM (or by a stop message); services poll or wait on it.
 
-    def __init__(self):
+    The signal handler takes no lock: the main thread it interrupts may hold the one the event
+    needs — inside a wait, or inside the handler of a first signal when a second comes (an
+    orchestrator's SIGTERM and its runner's, a double Ctrl-C) — and would wait for itself
+    forever. The handler notes the signal and writes a byte to a pipe; a thread sets the event
+    (and calls `on_signal(name)`, e.g. to say so)."""
+
+    NAMES = {signal.SIGINT: "SIGINT", signal.SIGTERM: "SIGTERM"}
+
+    def __init__(self, on_signal=None):
         self.event = threading.Event()
-        self.reason = ""
+        self._reason = ""
+        self.signalled = ""  # the first signal's name; written by the handler only
+        self.on_signal = on_signal
+        self._wakeup = -1
 
     def install(self) -> StopSignal:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        read_fd, self._wakeup = os.pipe()
+        os.set_blocking(self._wakeup, False)
+        threading.Thread(target=self._deliver, args=(read_fd,), daemon=True,
+                         name="signals").start()
+        for sig in self.NAMES:
             signal.signal(sig, self._on_signal)
         return self
 
     def _on_signal(self, signum, _frame) -> None:
-        self.set(signal.Signals(signum).name)
+        if not self.signalled:
+            self.signalled = self.NAMES[signum]
+        with contextlib.suppress(BlockingIOError):  # a full pipe: a wake-up is pending anyway
+            os.write(self._wakeup, b"\0")
+
+    def _deliver(self, read_fd: int) -> None:
+        while os.read(read_fd, 1):
+            self.set(self.signalled)
+            if self.on_signal is not None:
+                self.on_signal(self.signalled)
+
+    @property
+    def reason(self) -> str:
+        return self._reason or self.signalled
 
     def set(self, reason: str) -> None:
         if not self.event.is_set():
-            self.reason = reason
+            self._reason = reason
             self.event.set()
 
     def __bool__(self) -> bool:
-        return self.event.is_set()
+        return bool(self.signalled) or self.event.is_set()
 
     def wait(self, timeout_s: float) -> bool:
-        return self.event.wait(timeout_s)
+        return self.event.wait(timeout_s) or bool(self.signalled)

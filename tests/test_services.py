@@ -7,6 +7,8 @@ import os
 import queue
 import signal
 import statistics
+import subprocess
+import sys
 import time
 
 import msgpack
@@ -14,7 +16,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from tests.procs import maps_torch, pids_with
+from tests.procs import ROOT, maps_torch, pids_with
 from tpdeb.protocol import SCHEMA_VERSION, Keys, SampleReply, SampleRequest, Stats, decode, encode
 from tpdeb.services.net.session import fetch_spec, open_session
 from tpdeb.services.store.metrics import read_metrics
@@ -267,3 +269,28 @@ def test_health_refuses_bad_usage_with_status_2(argv, capsys):
 
     assert health.main(argv) == 2
     assert "usage: tpdeb-health {router,replay,learner,actor}" in capsys.readouterr().err
+
+
+def test_a_signal_arriving_while_the_stop_lock_is_held_cannot_deadlock():
+    """The handler runs on the main thread between two bytecodes — here while that thread holds
+    the lock of the stop event, as inside a wait or a first signal's handling. It must not take
+    that lock (it used to: a second SIGTERM hung a service for good)."""
+    code = ("import signal; from tpdeb.services.process import StopSignal\n"
+            "stop = StopSignal().install()\n"
+            "with stop.event._cond:\n"
+            "    signal.raise_signal(signal.SIGTERM)\n"
+            "    signal.raise_signal(signal.SIGINT)\n"
+            "    assert stop and stop.reason == 'SIGTERM'\n"
+            "assert stop.wait(5) and stop.event.is_set()\n"
+            "print('stopped', stop.reason)\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                          timeout=30)
+    assert done.returncode == 0 and done.stdout.strip() == "stopped SIGTERM", done.stderr
+
+
+def test_a_storm_of_sigterms_stops_a_service_cleanly(procs, endpoint, tmp_path):
+    replay = start_replay(procs, endpoint, tmp_path)
+    for _ in range(50):
+        os.kill(replay.pid, signal.SIGTERM)
+    assert replay.wait(30) == 0, procs.output(replay)
+    assert "stopped (SIGTERM)" in procs.output(replay)
