@@ -65,6 +65,7 @@ def test_bad_settings_are_refused_with_the_value(argv, message):
     ("--config", "seed = 1", r"seed = 1 outside a table: put it under \[run\]"),
     ("--config", "[run]\nzeta = 0.1", r"\[run\]: zeta belongs in \[replay\]"),
     ("--config", "[optim]\nlearning_rate = 0.1", r"no table \[optim\] here; expected \[run\], "),
+    ("--preset", "seed = = 3", r"^preset \S+: not valid TOML"),
     ("--preset", "[run]\nseed = 3", r"no table \[run\] here \(a preset holds training settings"),
     ("--preset", "[loss]\nlearning_rat = 3e-4", "unknown setting 'learning_rat'.*'learning_rate'"),
     ("--preset", "[replay]\ngamma = 0.9", r"gamma belongs in \[loss\]"),

@@ -97,14 +97,15 @@ def coerce(cls, name: str, value, source: str):
         ) from None
 
 
-def load_toml(path: str | Path) -> dict:
+def load_toml(path: str | Path, what: str = "--config") -> dict:
+    """A TOML file's document; `what` names it in the errors (--config, preset)."""
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"--config {path}: no such file")
+        raise ConfigError(f"{what} {path}: no such file")
     try:
         return tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"--config {path}: not valid TOML ({exc})") from None
+        raise ConfigError(f"{what} {path}: not valid TOML ({exc})") from None
 
 
 def section_of(cls, name: str) -> str:
@@ -147,8 +148,9 @@ def read_sections(cls, tables: dict, source: str, allowed: set[str] | None = Non
     return values
 
 
+@functools.cache
 def known_settings() -> dict[str, str]:
-    """Every setting of every service and of a training run, with its table."""
+    """Every setting of every service and of a training run, with its table (read-only)."""
     from tpdeb.services.config.service import SERVICE_CONFIGS
     from tpdeb.services.config.train import TrainConfig
 

@@ -18,7 +18,6 @@ from tpdeb.services.config import ConfigError, load_toml, read_sections, section
 PRESETS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "presets"
 
 
-
 def _ppo_per(values: dict) -> dict:
     batch = int(values.get("batch_fragments", 8))
     return {"zeta": 1.0, "priority_mode": "step", "replay_retention": "fifo",
@@ -62,7 +61,7 @@ def load_preset(cls, path: Path) -> dict:
     from tpdeb.services.config.train import TrainConfig
 
     tables = {section_of(TrainConfig, f.name) for f in dataclasses.fields(TrainConfig)} - {"run"}
-    return read_sections(cls, load_toml(path), f"preset {path}", allowed=tables,
+    return read_sections(cls, load_toml(path, "preset"), f"preset {path}", allowed=tables,
                          why=" (a preset holds training settings, not the run's)")
 
 

@@ -22,6 +22,7 @@ from tpdeb.services.config.train import (
     RunSettings,
     SamplingConfig,
     chain_post_init,
+    check,
 )
 from tpdeb.services.logs import LEVELS
 from tpdeb.services.net.security import access_control, check_settings, read_auth_file
@@ -76,12 +77,11 @@ class NetConfig:
 
     def __post_init__(self):
         chain_post_init(NetConfig, self)  # the training groups', in a ServiceConfig
-        if not _RUN_ID.fullmatch(self.run_id):
-            raise ConfigError(f"run_id={self.run_id!r}: use 1-64 letters, digits, '_', '.', '-'")
-        if self.log_level not in LEVELS:
-            raise ConfigError(f"log_level={self.log_level!r}: expected one of {', '.join(LEVELS)}")
-        if self.connect_timeout_s <= 0:
-            raise ConfigError(f"connect_timeout_s={self.connect_timeout_s}: must be > 0")
+        check(self, [
+            (_RUN_ID.fullmatch(self.run_id), "run_id", "use 1-64 letters, digits, '_', '.', '-'"),
+            (self.log_level in LEVELS, "log_level", f"expected one of {', '.join(LEVELS)}"),
+            (self.connect_timeout_s > 0, "connect_timeout_s", "must be > 0"),
+        ])
         if self.password_file:
             if self.password:
                 raise ConfigError("password and password_file are both set: keep one")
@@ -158,12 +158,11 @@ class ReplayServiceConfig(NetConfig, SamplingConfig):
         super().__post_init__()
         if not self.listen and not self.connect:
             raise ConfigError("the replay server needs --listen (or --connect to a router)")
-        if self.restore not in ("auto", "never"):
-            raise ConfigError(f"restore={self.restore!r}: expected auto or never")
-        if self.snapshot_interval_s < 0:
-            raise ConfigError(f"snapshot_interval_s={self.snapshot_interval_s}: must be ≥ 0")
-        if self.keep_snapshots < 1:
-            raise ConfigError(f"keep_snapshots={self.keep_snapshots}: must be ≥ 1")
+        check(self, [
+            (self.restore in ("auto", "never"), "restore", "expected auto or never"),
+            (self.snapshot_interval_s >= 0, "snapshot_interval_s", "must be ≥ 0"),
+            (self.keep_snapshots >= 1, "keep_snapshots", "must be ≥ 1"),
+        ])
 
 
 @dataclass
@@ -187,13 +186,12 @@ class LearnerServiceConfig(NetConfig, LearningConfig):
 
     def __post_init__(self):
         super().__post_init__()
-        if self.requests_in_flight < 1:
-            raise ConfigError(f"requests_in_flight={self.requests_in_flight}: must be ≥ 1")
-        if self.checkpoint_interval_s < 0:
-            raise ConfigError(f"checkpoint_interval_s={self.checkpoint_interval_s}: must be ≥ 0 "
-                              "(0 turns periodic checkpoints off)")
-        if self.keep_checkpoints < 1:
-            raise ConfigError(f"keep_checkpoints={self.keep_checkpoints}: must be ≥ 1")
+        check(self, [
+            (self.requests_in_flight >= 1, "requests_in_flight", "must be ≥ 1"),
+            (self.checkpoint_interval_s >= 0, "checkpoint_interval_s",
+             "must be ≥ 0 (0 turns periodic checkpoints off)"),
+            (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
+        ])
         if not self.resume.strip():
             raise ConfigError("resume='': use auto, never or the path of a checkpoint")
 
@@ -222,11 +220,11 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
                 self.actor_id.isdigit() and 0 <= int(self.actor_id) < 2**31):
             raise ConfigError(f"actor_id={self.actor_id!r}: must be auto or an integer in "
                               "[0, 2^31)")
-        if self.outbox_fragments < 0:
-            raise ConfigError(f"outbox_fragments={self.outbox_fragments}: must be ≥ 0")
+        check(self, [
+            (self.outbox_fragments >= 0, "outbox_fragments", "must be ≥ 0"),
+            (self.resend_after_s > 0, "resend_after_s", "must be > 0"),
+        ])
         self.outbox_fragments = self.outbox_fragments or 2 * self.num_envs
-        if self.resend_after_s <= 0:
-            raise ConfigError(f"resend_after_s={self.resend_after_s}: must be > 0")
 
 
 def read_password_file(path: str) -> str:

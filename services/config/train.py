@@ -46,10 +46,10 @@ class RunSettings:
 
     def __post_init__(self):
         chain_post_init(RunSettings, self)
-        if self.total_timesteps < 1:
-            raise ConfigError(f"total_timesteps={self.total_timesteps!r}: must be ≥ 1")
-        if self.algo not in ALGOS:
-            raise ConfigError(f"algo={self.algo!r}: must be one of {', '.join(ALGOS)}")
+        check(self, [
+            (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
+            (self.algo in ALGOS, "algo", f"must be one of {', '.join(ALGOS)}"),
+        ])
 
     def default_run_dir(self) -> Path:
         if self.run_dir:
@@ -71,11 +71,11 @@ class ActingSettings:
 
     def __post_init__(self):
         chain_post_init(ActingSettings, self)
-        if self.num_envs < 1:
-            raise ConfigError(f"num_envs={self.num_envs!r}: must be ≥ 1")
-        if self.trajectory_compression not in ("none", "zstd"):
-            raise ConfigError(f"trajectory_compression={self.trajectory_compression!r}: must be "
-                              "none or zstd")
+        check(self, [
+            (self.num_envs >= 1, "num_envs", "must be ≥ 1"),
+            (self.trajectory_compression in ("none", "zstd"), "trajectory_compression",
+             "must be none or zstd"),
+        ])
 
 
 def chain_post_init(cls, obj) -> None:
