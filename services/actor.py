@@ -17,10 +17,8 @@ from __future__ import annotations
 import logging
 import secrets
 import sys
-import tempfile
 import threading
 import time
-from pathlib import Path
 
 import numpy as np
 import zenoh
@@ -47,7 +45,7 @@ from tpdeb.services.net.session import (
     open_for,
 )
 from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
-from tpdeb.services.process import StopSignal, configure, fail
+from tpdeb.services.process import StopSignal, actor_id_file, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
 
@@ -301,12 +299,6 @@ class ActorService:
             self.puller.join(timeout=5)
         self.token.undeclare()
         self.envs.close()
-
-
-def actor_id_file(run_id: str) -> Path:
-    """Where an actor with `--actor-id auto` notes the id it got, for tpdeb-health (one actor
-    per container: the file is the container's)."""
-    return Path(tempfile.gettempdir()) / f"tpdeb-{run_id}-actor.id"
 
 
 def main(argv: list[str] | None = None) -> int:

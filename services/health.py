@@ -14,7 +14,7 @@ from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import SERVICE_CONFIGS
 from tpdeb.services.net.security import security_of
 from tpdeb.services.net.session import open_session, probe_endpoint
-from tpdeb.services.process import configure
+from tpdeb.services.process import actor_id_file, configure
 
 PROG = "tpdeb-health"
 log = logging.getLogger(PROG)
@@ -33,8 +33,6 @@ def local(endpoint: str) -> str:
 def actor_ident(config) -> str:
     if config.actor_id != "auto":
         return config.actor_id
-    from tpdeb.services.actor import actor_id_file
-
     path = actor_id_file(config.run_id)
     if not path.is_file():
         raise ConfigError("the actor has not got its id from the replay server yet")

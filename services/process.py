@@ -7,7 +7,9 @@ import contextlib
 import logging
 import os
 import signal
+import tempfile
 import threading
+from pathlib import Path
 
 from tpdeb.services.config import resolve
 from tpdeb.services.logs import setup_logging
@@ -20,6 +22,12 @@ def configure(cls, argv: list[str] | None, prog: str, description: str):
     config = resolve(cls, argv, prog, description)
     setup_logging(getattr(config, "log_level", "info"))
     return config
+
+
+def actor_id_file(run_id: str) -> Path:
+    """Where an actor with `--actor-id auto` notes the id it got, for tpdeb-health (one actor
+    per container: the file is the container's)."""
+    return Path(tempfile.gettempdir()) / f"tpdeb-{run_id}-actor.id"
 
 
 def fail(prog: str, exc: Exception) -> int:

@@ -222,8 +222,11 @@ class ReplayServer:
             self.snapshot()
 
     def _handle(self, kind: str, item) -> None:
-        if kind in ("sample", "join"):
-            (self._take_sample_request if kind == "sample" else self._answer_join)(item)
+        if kind == "sample":
+            self._take_sample_request(item)
+            return
+        if kind == "join":
+            self._answer_join(item)
             return
         payload = item.payload.to_bytes()
         sender = str(item.key_expr)
@@ -388,25 +391,26 @@ class ReplayServer:
             self.ledgers[actor_id] = ActorLedger.from_state(ledger)
 
     # -- sampling
-    def _take_sample_request(self, query) -> None:
-        payload = query.payload.to_bytes() if query.payload is not None else b""
+    def _request(self, query, message_type, what: str):
+        """A query's request, or None once a bad one is counted and the query dropped."""
         try:
-            request = decode(payload, SampleRequest)
+            return decode(query.payload.to_bytes() if query.payload is not None else b"",
+                          message_type)
         except DecodeError as exc:
-            self.reject(exc.kind, "a sample request", exc.detail)
+            self.reject(exc.kind, what, exc.detail)
             query.drop()
-            return
-        self.waiting.append((time.monotonic(), query, request))
+            return None
+
+    def _take_sample_request(self, query) -> None:
+        request = self._request(query, SampleRequest, "a sample request")
+        if request is not None:
+            self.waiting.append((time.monotonic(), query, request))
 
     def _answer_join(self, query) -> None:
         """`--actor-id auto`: the lowest id no actor known to this replay holds (one that has
         sent fragments, or was handed out); the same again to a repeated ask."""
-        try:
-            request = decode(query.payload.to_bytes() if query.payload is not None else b"",
-                             JoinRequest)
-        except DecodeError as exc:
-            self.reject(exc.kind, "a join request", exc.detail)
-            query.drop()
+        request = self._request(query, JoinRequest, "a join request")
+        if request is None:
             return
         actor_id = self.joined.get(request.nonce)
         if actor_id is None:
@@ -420,7 +424,7 @@ class ReplayServer:
             query.drop()
 
     def _serve_waiting(self) -> None:
-        batch_steps = self.config.batch_fragments * self.spec.fragment_len
+        batch_steps = self.config.batch_steps
         while self.waiting:
             since, query, request = self.waiting[0]
             steps = request.batch_size * self.spec.fragment_len
