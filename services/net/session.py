@@ -282,7 +282,8 @@ def join_run(session, keys: Keys, timeout_s: float, stop=None) -> int:
     answer = ask_replay(session, keys, keys.join, JoinReply, timeout_s, stop,
                         payload=encode(JoinRequest(nonce)), what="actor id")
     if answer.nonce != nonce:
-        raise ConfigError(f"the replay server answered another actor's join ({answer.nonce})")
+        raise ConfigError(f"the replay server answered another actor's join ({answer.nonce}): "
+                          "start this actor again, or give it a fixed --actor-id")
     return answer.actor_id
 
 
