@@ -64,7 +64,7 @@ def fragment(rng: np.random.Generator, seq: int) -> bytes:
         actions=rng.standard_normal((T, ACT)).astype(f4), rewards=rng.standard_normal(T).astype(f4),
         terminated=np.zeros(T, bool), truncated=np.zeros(T, bool),
         behaviour_mean=np.zeros((T, ACT), f4), behaviour_log_std=np.zeros((T, ACT), f4),
-        behaviour_logp=rng.standard_normal(T).astype(f4), values=np.zeros(T + 1, f4),
+        behaviour_logp=rng.standard_normal(T).astype(f4),
         trunc_index=np.zeros(0, np.int32), trunc_obs=np.zeros((0, OBS), f4),
         disc_returns=rng.standard_normal(T).astype(f4),
         td_abs=np.abs(rng.standard_normal(T)).astype(f4), incarnation=1))

@@ -54,7 +54,7 @@ from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.launcher.plan import free_port
 from tpdeb.services.net.model_wire import model_for, params_message
 from tpdeb.services.net.session import open_session
-from tpdeb.services.net.wire import fragment_to_message, policy_from_params, run_spec
+from tpdeb.services.net.wire import policy_from_params, run_spec
 from tpdeb.tpdeb_core.fragments import Collector, stack_fragments
 from tpdeb.tpdeb_core.learner import Learner
 
@@ -151,7 +151,7 @@ def bench_actor(config: TrainConfig, seconds: float) -> dict:
 
         def step():
             for fragment in collector.step():
-                sent["bytes"] += len(encode(fragment_to_message(fragment, 1.0)))
+                sent["bytes"] += len(encode(fragment))
                 sent["fragments"] += 1
 
         timed_loop(step, 0.5)  # warm-up

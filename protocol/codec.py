@@ -1,9 +1,10 @@
 """msgpack codec (DESIGN §3): a versioned envelope, arrays as raw bytes, decode that checks all.
 
-On the wire every message is {"v": SCHEMA_VERSION, "type": class name, "body": {field: value}};
-an array is {"__nd__": True, "dtype": "<f4", "shape": [...], "data": bytes}. Decoding builds
-arrays with np.frombuffer over the bytes msgpack unpacked (no further copy, read-only) and either
-returns a fully valid message or raises DecodeError: never half a message, never another error.
+On the wire every message is {"v": SCHEMA_VERSION, "type": its MESSAGE_TYPES name, "body":
+{field: value}}; an array is {"__nd__": True, "dtype": "<f4", "shape": [...], "data": bytes}.
+Decoding builds arrays with np.frombuffer over the bytes msgpack unpacked (no further copy,
+read-only) and either returns a fully valid message or raises DecodeError: never half a message,
+never another error.
 """
 
 from __future__ import annotations
@@ -13,7 +14,7 @@ import numpy as np
 import zstandard
 
 from tpdeb.protocol.keys import SCHEMA_VERSION
-from tpdeb.protocol.messages import MESSAGE_TYPES, Params, RunSpec
+from tpdeb.protocol.messages import MESSAGE_NAMES, MESSAGE_TYPES, Params, RunSpec
 from tpdeb.protocol.schema import (
     ERROR_KINDS,
     WIRE_DTYPES,
@@ -43,7 +44,7 @@ def _array_to_wire(arr: np.ndarray, where: str) -> dict:
 def _to_wire(value, where: str):
     if isinstance(value, np.ndarray):
         return _array_to_wire(value, where)
-    if type(value) in MESSAGE_TYPES.values():
+    if type(value) in MESSAGE_NAMES:
         return _body(value, where)
     if isinstance(value, dict):
         return {k: _to_wire(v, f"{where}[{k!r}]") for k, v in value.items()}
@@ -68,9 +69,9 @@ _ZSTD_LEVEL = 3
 def encode(msg, compression: str = "none") -> bytes:
     """The wire bytes of a message. Values are not validated here; the receiver's decode is.
     With compression "zstd" the body travels compressed (envelope key `zbody`)."""
-    name = type(msg).__name__
-    if MESSAGE_TYPES.get(name) is not type(msg):
-        raise TypeError(f"cannot encode {name}: not one of {sorted(MESSAGE_TYPES)}")
+    name = MESSAGE_NAMES.get(type(msg))
+    if name is None:
+        raise TypeError(f"cannot encode {type(msg).__name__}: not one of {sorted(MESSAGE_TYPES)}")
     if compression not in COMPRESSIONS:
         raise ValueError(f"compression={compression!r}: use one of {COMPRESSIONS}")
     body = _body(msg, name)
@@ -126,14 +127,14 @@ def decode(data: bytes, expected: type | tuple[type, ...], spec: RunSpec | None 
     name = top.get("type")
     cls = MESSAGE_TYPES.get(name) if type(name) is str else None
     if cls is None or cls not in expected:
-        wanted = [c.__name__ for c in expected]
+        wanted = [MESSAGE_NAMES.get(c, c.__name__) for c in expected]
         raise DecodeError("type", f"got {short(name)}, expected {' or '.join(wanted)}")
     if top.keys() not in ({"v", "type", "body"}, {"v", "type", "zbody"}):
         raise DecodeError("field", f"envelope keys {sorted(map(short, top))}, expected "
                                    "v, type and body (or zbody)")
     body = top["body"] if "body" in top else _decompress(top["zbody"], max_bytes)
     try:
-        return load_message(cls, body, spec)
+        return load_message(cls, body, spec, name)
     except DecodeError:
         raise
     except Exception as e:  # a rule that trips over hostile input must still not crash a service

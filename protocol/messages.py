@@ -1,10 +1,17 @@
 """Every message of TPDEB's wire (DESIGN §3): one dataclass each, a rule on every field.
 
+A fragment and a batch of them travel as the core's own classes (`Trajectory` is
+tpdeb_core.schema's `Fragment`, `Batch` its `FragmentBatch`): their array rules (dtype, dims,
+lower bound) come from that declaration, the rules of a fragment's scalars and every rule
+spanning several fields are the wire's. tpdeb_core.schema is the one core module protocol
+imports: the data's shape is the algorithm's, the wire validates it.
+
 Array shapes name their dimensions. T (steps per fragment), obs_dim and act_dim come from the run
 spec when the decoder has one; otherwise, like B, K, n and k, they are sized by the first field
 that uses them and every other field must agree. Rules spanning several fields live in each
-class's `cross_check`. Classes holding arrays compare by identity (eq=False): dataclass equality
-on numpy fields would raise instead of answering.
+class's `cross_check` (for the core's classes, the check given to `core_message`). Classes
+holding arrays compare by identity (eq=False): dataclass equality on numpy fields would raise
+instead of answering.
 """
 
 from __future__ import annotations
@@ -27,10 +34,13 @@ from tpdeb.protocol.schema import (
     Scalar,
     Scope,
     Str,
+    adopt,
 )
+from tpdeb.tpdeb_core.schema import Fragment, FragmentBatch, array_specs
 
-F4, F8, I4, I8, B1 = "<f4", "<f8", "<i4", "<i8", "|b1"
+F4, F8, I8, B1 = "<f4", "<f8", "<i8", "|b1"
 PRIORITY_MODES = ("trajectory", "step", "none")  # as tpdeb_core.replay, which we may not import
+POLICY_STDS = ("global", "state")  # as tpdeb_core.policy, which we may not import
 CONTROL_COMMANDS = ("stop",)
 MAX_BATCH_SIZE = 4096
 
@@ -52,6 +62,7 @@ class RunSpec:
     gamma: float = wire(Float(ge=0.0, le=1.0))
     obs_clip: float = wire(Float(gt=0.0))
     init_log_std: float = wire(Float())
+    policy_std: str = wire(Str(choices=POLICY_STDS))  # the policy's standard deviation
     priority_mode: str = wire(Str(choices=PRIORITY_MODES))
     priority_kappa: float = wire(Float(ge=0.0))
     action_low: np.ndarray = wire(Array(F4, "act_dim"))  # float32[act_dim]
@@ -66,46 +77,32 @@ class RunSpec:
             raise DecodeError("value", f"{where}: action_low > action_high")
 
 
-@dataclass(eq=False)
-class Trajectory:
-    """One fragment: T steps of one env of one actor (DESIGN §2 "Fragments")."""
+def core_message(cls: type, cross_check, **scalar_rules) -> type:
+    """The core's class `cls` as a message: each array field's rule from its declaration, each
+    other field's from `scalar_rules`."""
+    arrays = {name: Array(spec.dtype, spec.dims, ge=spec.ge)
+              for name, spec in array_specs(cls).items()}
+    return adopt(cls, {**arrays, **scalar_rules}, cross_check)
 
-    actor_id: int = wire(Int(le=MAX_ACTOR_ID))
-    seq: int = wire(Int())  # per-actor sequence number: acks and de-duplication
-    env_index: int = wire(Int(le=MAX_ACTOR_ID))
-    policy_version: int = wire(Int())
-    reward_scale: float = wire(Float(gt=0.0))
-    obs: np.ndarray = wire(Array(F4, "T+1 obs_dim"))  # raw; the last row is the bootstrap obs
-    actions: np.ndarray = wire(Array(F4, "T act_dim"))  # raw Gaussian samples
-    rewards: np.ndarray = wire(Array(F4, "T"))  # raw
-    terminated: np.ndarray = wire(Array(B1, "T"))
-    truncated: np.ndarray = wire(Array(B1, "T"))
-    behaviour_mean: np.ndarray = wire(Array(F4, "T act_dim"))
-    behaviour_log_std: np.ndarray = wire(Array(F4, "T act_dim"))
-    behaviour_logp: np.ndarray = wire(Array(F4, "T"))
-    values: np.ndarray = wire(Array(F4, "T+1"))
-    trunc_index: np.ndarray = wire(Array(I4, "K", ge=0))  # truncated steps, ascending
-    trunc_obs: np.ndarray = wire(Array(F4, "K obs_dim"))  # their real final observations
-    disc_returns: np.ndarray = wire(Array(F4, "T"))
-    td_abs: np.ndarray = wire(Array(F4, "T", ge=0.0))  # |δ_t|: the initial priority
-    # Which run of the actor process sent it: a restarted actor counts seq from 0 again, so
-    # de-duplication is by (actor_id, incarnation, seq).
-    incarnation: int = wire(Int(ge=0), default=0)
 
-    @property
-    def num_steps(self) -> int:
-        return int(self.rewards.shape[0])
+def _check_trajectory(fragment: Fragment, scope: Scope, where: str) -> None:
+    steps, index = fragment.num_steps, fragment.trunc_index
+    if steps < 1:
+        raise DecodeError("shape", f"{where}: a fragment needs at least one step")
+    if index.size and (index[-1] >= steps or (np.diff(index) <= 0).any()):
+        raise DecodeError("value", f"{where}.trunc_index must be strictly increasing steps "
+                                   f"in [0, {steps})")
+    # The learner bootstraps those steps from trunc_obs: they must really be truncations.
+    if not fragment.truncated[index].all():
+        raise DecodeError("value", f"{where}.trunc_index names steps that are not truncated")
 
-    def cross_check(self, scope: Scope, where: str) -> None:
-        steps, index = self.num_steps, self.trunc_index
-        if steps < 1:
-            raise DecodeError("shape", f"{where}: a fragment needs at least one step")
-        if index.size and (index[-1] >= steps or (np.diff(index) <= 0).any()):
-            raise DecodeError("value", f"{where}.trunc_index must be strictly increasing steps "
-                                       f"in [0, {steps})")
-        # The learner bootstraps those steps from trunc_obs: they must really be truncations.
-        if not self.truncated[index].all():
-            raise DecodeError("value", f"{where}.trunc_index names steps that are not truncated")
+
+# One fragment: T steps of one env of one actor (DESIGN §2 "Fragments"). De-duplication is by
+# (actor_id, incarnation, seq).
+Trajectory = core_message(
+    Fragment, _check_trajectory, policy_version=Int(), reward_scale=Float(gt=0.0),
+    actor_id=Int(le=MAX_ACTOR_ID), env_index=Int(le=MAX_ACTOR_ID), seq=Int(),
+    incarnation=Int(ge=0))
 
 
 @dataclass(eq=False)
@@ -114,7 +111,6 @@ class Ack:
 
     actor_id: int = wire(Int(le=MAX_ACTOR_ID))
     seqs: np.ndarray = wire(Array(I8, "n", ge=0))
-    ingested: int = wire(Int())  # fragments from this actor the replay has ingested in total
     incarnation: int = wire(Int(ge=0), default=0)  # the actor process run these seqs belong to
 
 
@@ -125,7 +121,6 @@ class Params:
     version: int = wire(Int())
     # float16 when the learner broadcasts weights at reduced precision (params_dtype)
     arrays: dict[str, np.ndarray] = wire(DictOf(Str(min_len=1), Array("<f2 <f4 <f8 <i8", "*")))
-    source: str = wire(Str(), default="learner")
 
 
 @dataclass
@@ -150,33 +145,19 @@ class Moments:
             raise DecodeError("shape", f"{where}: mean {self.mean.shape} but m2 {self.m2.shape}")
 
 
-@dataclass(eq=False)
-class Batch:
-    """B sampled fragments stacked time-major ([T(+1), B, …]), the learner's input as it is:
-    the replay stacks once, the learner decodes a dozen arrays instead of B messages."""
+def _check_batch(batch: FragmentBatch, scope: Scope, where: str) -> None:
+    steps, size = batch.rewards.shape
+    if batch.trunc_t.size and (batch.trunc_t.max() >= steps or batch.trunc_b.max() >= size):
+        raise DecodeError("value", f"{where}: a truncation index is outside the "
+                                   f"[T, B] = [{steps}, {size}] batch")
+    # The learner bootstraps those steps from trunc_obs: they must really be truncations.
+    if not batch.truncated[batch.trunc_t, batch.trunc_b].all():
+        raise DecodeError("value", f"{where}.trunc_t/trunc_b name steps that are not truncated")
 
-    obs: np.ndarray = wire(Array(F4, "T+1 B obs_dim"))  # raw
-    actions: np.ndarray = wire(Array(F4, "T B act_dim"))
-    rewards: np.ndarray = wire(Array(F4, "T B"))  # raw
-    terminated: np.ndarray = wire(Array(B1, "T B"))
-    truncated: np.ndarray = wire(Array(B1, "T B"))
-    behaviour_mean: np.ndarray = wire(Array(F4, "T B act_dim"))
-    behaviour_log_std: np.ndarray = wire(Array(F4, "T B act_dim"))
-    behaviour_logp: np.ndarray = wire(Array(F4, "T B"))
-    trunc_t: np.ndarray = wire(Array(I4, "K", ge=0))  # step of each truncation
-    trunc_b: np.ndarray = wire(Array(I4, "K", ge=0))  # its fragment
-    trunc_obs: np.ndarray = wire(Array(F4, "K obs_dim"))  # its real final observation
-    policy_version: np.ndarray = wire(Array(I8, "B"))  # each fragment's behaviour policy
 
-    def cross_check(self, scope: Scope, where: str) -> None:
-        steps, size = self.rewards.shape
-        if self.trunc_t.size and (self.trunc_t.max() >= steps or self.trunc_b.max() >= size):
-            raise DecodeError("value", f"{where}: a truncation index is outside the "
-                                       f"[T, B] = [{steps}, {size}] batch")
-        # The learner bootstraps those steps from trunc_obs: they must really be truncations.
-        if not self.truncated[self.trunc_t, self.trunc_b].all():
-            raise DecodeError("value", f"{where}.trunc_t/trunc_b name steps that are not "
-                                       "truncated")
+# B sampled fragments stacked time-major ([T(+1), B, …]), the learner's input as it is: the
+# replay stacks once, the learner decodes a dozen arrays instead of B messages.
+Batch = core_message(FragmentBatch, _check_batch)
 
 
 @dataclass(eq=False)
@@ -268,6 +249,9 @@ class JoinReply:
     nonce: int = wire(Int(ge=0))
 
 
-MESSAGE_TYPES: dict[str, type] = {cls.__name__: cls for cls in (
-    RunSpec, Trajectory, Ack, Params, SampleRequest, SampleReply, Batch, Moments, PriorityUpdate,
-    Stats, Control, JoinRequest, JoinReply)}
+# The envelope's type name of each message class.
+MESSAGE_TYPES: dict[str, type] = {
+    "Trajectory": Trajectory, "Batch": Batch, **{cls.__name__: cls for cls in (
+        RunSpec, Ack, Params, SampleRequest, SampleReply, Moments, PriorityUpdate, Stats, Control,
+        JoinRequest, JoinReply)}}
+MESSAGE_NAMES: dict[type, str] = {cls: name for name, cls in MESSAGE_TYPES.items()}

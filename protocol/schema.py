@@ -1,9 +1,10 @@
 """Field rules: what each message field may hold on the wire, and the walk that checks them.
 
-messages.py declares one rule per field; `load_message` runs a decoded msgpack body through them
-and builds the message only when every rule and the class's `cross_check` pass. Every problem is
-a DecodeError of one of ERROR_KINDS, so a service can count bad messages by kind and drop them
-without catching anything else.
+messages.py declares one rule per field (or, for a class the core declares, derives them from
+its declaration: `adopt`); `load_message` runs a decoded msgpack body through them and builds the
+message only when every rule and the class's cross check pass. Every problem is a DecodeError of
+one of ERROR_KINDS, so a service can count bad messages by kind and drop them without catching
+anything else.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import functools
 import math
 import re
+from collections.abc import Callable
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -276,11 +278,34 @@ def array_from_wire(raw, where: str) -> np.ndarray:
     return np.frombuffer(data, dtype=dtype).reshape(shape)
 
 
+# Classes declared outside this package (the core's Fragment, FragmentBatch) that travel as
+# messages: their rules and cross checks, given by `adopt`.
+_ADOPTED: dict[type, tuple[tuple[tuple[str, object], ...], Callable | None]] = {}
+
+
+def adopt(cls: type, rules: dict[str, object], cross_check: Callable | None = None) -> type:
+    """Make `cls`, a dataclass declared elsewhere, a message: `rules` holds one rule for each of
+    its fields (a missing or unknown name raises at import), `cross_check(message, scope,
+    where)` the rules spanning several fields."""
+    names = [f.name for f in fields(cls)]
+    if sorted(rules) != sorted(names):
+        raise TypeError(f"{cls.__name__}: rules for {sorted(rules)}, fields {sorted(names)}")
+    _ADOPTED[cls] = (tuple((name, rules[name]) for name in names), cross_check)
+    return cls
+
+
 @functools.cache
 def field_rules(cls: type) -> tuple[tuple[str, object], ...]:
     """(name, rule) of every field of a message class, in declaration order (looked up once:
     `dataclasses.fields` per message costs more than most rules)."""
+    if cls in _ADOPTED:
+        return _ADOPTED[cls][0]
     return tuple((f.name, f.metadata["rule"]) for f in fields(cls))
+
+
+def cross_check_of(cls: type) -> Callable | None:
+    """The rules of `cls` spanning several fields, called as check(message, scope, where)."""
+    return _ADOPTED[cls][1] if cls in _ADOPTED else getattr(cls, "cross_check", None)
 
 
 def load_message(cls: type, body, spec, where: str | None = None):
@@ -299,6 +324,7 @@ def load_message(cls: type, body, spec, where: str | None = None):
     scope = Scope(spec)
     values = {name: rule.load(body[name], f"{where}.{name}", scope) for name, rule in rules}
     message = cls(**values)
-    if hasattr(message, "cross_check"):
-        message.cross_check(scope, where)
+    check = cross_check_of(cls)
+    if check is not None:
+        check(message, scope, where)
     return message

@@ -156,6 +156,6 @@ def table_markdown() -> str:
                                     t.congestion if t.congestion != "drop" else "",
                                     "express" if t.express else "") if q) or "default"
         flow = f"{', '.join(t.producers)} → {', '.join(t.consumers) or 'monitors'}"
-        messages = " → ".join(m.__name__ for m in t.messages) or "liveliness token"
+        messages = " → ".join(m.MESSAGE_NAMES[c] for c in t.messages) or "liveliness token"
         rows.append(f"| `{key}` | {t.kind} | {messages} | {flow} | {qos} | {t.why} |")
     return "\n".join(rows)

@@ -44,7 +44,7 @@ from tpdeb.services.net.session import (
     join_run,
     open_for,
 )
-from tpdeb.services.net.wire import fragment_to_message, policy_from_params, spec_mismatch
+from tpdeb.services.net.wire import policy_from_params, spec_mismatch
 from tpdeb.services.process import StopSignal, actor_id_file, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
@@ -220,7 +220,7 @@ class ActorService:
             self.collector = Collector(
                 self.envs, policy, spec.fragment_len, spec.gamma, spec.action_low,
                 spec.action_high, seed=cfg.seed + 1000 * self.actor_id, actor_id=self.actor_id,
-                policy_version=message.version)
+                incarnation=self.incarnation, policy_version=message.version)
         else:
             self.collector.set_policy(policy, message.version)
         return True
@@ -266,9 +266,7 @@ class ActorService:
 
     def send_now(self, fragment) -> None:
         """Encode, keep in the outbox until acknowledged, put (the caller made room)."""
-        payload = encode(fragment_to_message(fragment, self.collector.policy.reward_scale(),
-                                             self.incarnation),
-                         self.config.trajectory_compression)
+        payload = encode(fragment, self.config.trajectory_compression)
         self.outbox.add(fragment.seq, payload, time.monotonic())
         self.traj_publisher.put(payload)
         self.sent += 1

@@ -44,10 +44,10 @@ from tpdeb.services.config.service import ReplayServiceConfig
 from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.session import close_session, declare_publisher, open_for
-from tpdeb.services.net.wire import batch_message, finite_values, message_to_fragment, run_spec
+from tpdeb.services.net.wire import finite_values, run_spec
 from tpdeb.services.process import StopSignal, configure, fail
-from tpdeb.services.store.persistence import ReplayPersistence
-from tpdeb.tpdeb_core.fragments import stack_fragments
+from tpdeb.services.store.persistence import Incompatible, ReplayPersistence
+from tpdeb.tpdeb_core.fragments import Fragment, initial_priority, stack_fragments
 from tpdeb.tpdeb_core.moments import batch_moments, merge_moments
 
 PROG = "tpdeb-replay"
@@ -154,7 +154,7 @@ class ReplayServer:
         self.replay = config.make_replay()
         self.limiter = config.rate_limiter()
         self.inbox: queue.Queue = queue.Queue()
-        self.pending: deque[tuple[Trajectory, bytes]] = deque()
+        self.pending: deque[tuple[Fragment, bytes]] = deque()
         self.waiting: deque[tuple[float, object, SampleRequest]] = deque()
         self.ledgers: dict[int, ActorLedger] = defaultdict(ActorLedger)
         self.bad: dict[str, int] = defaultdict(int)
@@ -246,7 +246,7 @@ class ReplayServer:
         self.bad[kind] += 1
         self.log_bad(kind, f"dropped a bad message from {sender} ({kind}): {detail}")
 
-    def _receive_fragment(self, message: Trajectory, payload: bytes, sender: str) -> None:
+    def _receive_fragment(self, message: Fragment, payload: bytes, sender: str) -> None:
         if self.keys.actor_id_of(sender) != message.actor_id:
             self.reject("sender", sender, f"carries actor_id {message.actor_id}")
             return
@@ -274,23 +274,22 @@ class ReplayServer:
             if self.persistence is not None:
                 self.persistence.log(payload)
 
-    def _insert(self, message: Trajectory, replaying: bool = False) -> None:
-        fragment = message_to_fragment(message)
-        priority = fragment.initial_priority(self.spec.priority_mode, self.spec.priority_kappa,
-                                             self.spec.gamma, message.reward_scale)
-        # The decoded message is the item: it goes back out in sample replies as it came in.
-        self.replay.insert(message, priority, fragment.num_steps)
+    def _insert(self, fragment: Fragment, replaying: bool = False) -> None:
+        spec = self.spec
+        priority = initial_priority(fragment, spec.priority_mode, spec.priority_kappa, spec.gamma)
+        # The decoded fragment is the item: it goes back out in sample replies as it came in.
+        self.replay.insert(fragment, priority, fragment.num_steps)
         self.limiter.on_insert(fragment.num_steps)
         self.inserted_steps += fragment.num_steps
-        ledger = self.ledgers[message.actor_id]
+        ledger = self.ledgers[fragment.actor_id]
         ledger.ingested += 1
-        ledger.window(message.incarnation).add(message.seq)
+        ledger.window(fragment.incarnation).add(fragment.seq)
         if replaying:
             return  # restored from the log: its moments were shipped, its ack was sent
         # Normaliser moments: every ingested step counted exactly once, shipped to the learner.
         self.obs_moments = merge_moments(self.obs_moments, batch_moments(fragment.obs[:-1]))
         self.ret_moments = merge_moments(self.ret_moments, batch_moments(fragment.disc_returns))
-        ledger.unacked[message.incarnation].append(message.seq)
+        ledger.unacked[fragment.incarnation].append(fragment.seq)
 
     def _flush_acks(self) -> None:
         for actor_id, ledger in self.ledgers.items():
@@ -302,7 +301,7 @@ class ReplayServer:
                 self.ack_publishers[actor_id] = publisher
             for incarnation, seqs in ledger.unacked.items():
                 publisher.put(encode(Ack(actor_id=actor_id, seqs=np.array(seqs, np.int64),
-                                         ingested=ledger.ingested, incarnation=incarnation)))
+                                         incarnation=incarnation)))
             ledger.unacked.clear()
 
     # -- durability
@@ -329,8 +328,17 @@ class ReplayServer:
                              f"steps: snapshot + {replayed} logged) from {directory} in "
                              f"{time.perf_counter() - started:.1f} s")
 
-    def _decode_stored(self, payload: bytes) -> Trajectory:
-        return decode(payload, Trajectory, self.spec, self.config.max_message_bytes)
+    def _decode_stored(self, payload: bytes) -> Fragment:
+        """A fragment from the log or a snapshot: wire bytes, checked as from the wire. Bytes of
+        another schema version are refused whole (Incompatible), not passed over."""
+        try:
+            return decode(payload, Trajectory, self.spec, self.config.max_message_bytes)
+        except DecodeError as exc:
+            if exc.kind != "version":
+                raise
+            raise Incompatible("the replay state in the run dir holds fragments of another "
+                               f"TPDEB version ({exc.detail}): restore it with the version that "
+                               "wrote it, or start afresh with --restore never") from None
 
     def snapshot(self, wait: bool = False) -> bool:
         """Capture the state now (a shallow copy, timed) and write it in the background."""
@@ -453,7 +461,7 @@ class ReplayServer:
             weights=sample.weights.astype(np.float32),
             from_prioritized=sample.from_prioritized.astype(bool),
             step_weights=sample.step_weights,
-            batch=batch_message(stack_fragments(sample.items)),
+            batch=stack_fragments(sample.items),
             inserted_steps=self.inserted_steps,
             obs_moments=Moments(*self.obs_moments) if self.obs_moments[0] else None,
             ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None)
@@ -537,7 +545,7 @@ def main(argv: list[str] | None = None) -> int:
         (server_dir / "replay.toml").write_text(to_toml(config))
         if config.persist:
             server.enable_persistence(server_dir / "replay")
-    except (ConfigError, OSError, DecodeError) as exc:
+    except (ConfigError, OSError, DecodeError, Incompatible) as exc:
         server.close()
         close_session(session, PROG)
         return fail(PROG, exc)

@@ -2,8 +2,16 @@ import numpy as np
 import pytest
 
 from tests.fakes import ScriptedVectorEnv
-from tpdeb.tpdeb_core.fragments import Collector, fragment_priority, fragment_return
+from tpdeb.tpdeb_core.fragments import (
+    Collector,
+    FragmentBatch,
+    fragment_priority,
+    fragment_return,
+    initial_priority,
+    stack_fragments,
+)
 from tpdeb.tpdeb_core.model import ActorCritic
+from tpdeb.tpdeb_core.schema import Fragment, array_specs
 
 T = 8
 
@@ -75,7 +83,6 @@ def test_initial_td_errors_use_the_actor_value_net_and_bootstrap_rules():
     policy, gamma = collector.policy, 0.9
     for f in fragments:
         values = policy.values_of(f.obs)
-        np.testing.assert_allclose(f.values, values, rtol=1e-5, atol=1e-6)
         next_values = values[1:].astype(np.float64)
         if len(f.trunc_index):
             next_values[f.trunc_index] = policy.values_of(f.trunc_obs)
@@ -94,3 +101,33 @@ def test_priority_modes():
     assert with_return == pytest.approx(4.0 + 2.0 * 1.25)
     with pytest.raises(ValueError, match="priority_mode"):
         fragment_priority(td, "bogus")
+
+
+def test_fragments_and_batches_are_what_the_schema_declares():
+    """Every array the Collector emits and `stack_fragments` builds has its declared dtype and
+    shape (T steps, K truncations, B fragments)."""
+    collector, fragments = collect(True, 40)
+    sizes = {"T": T, "obs_dim": 3, "act_dim": 1}
+    for f in fragments:
+        assert type(f) is Fragment
+        assert f.reward_scale == collector.policy.reward_scale() and f.incarnation == 0
+        for name, spec in array_specs(Fragment).items():
+            value = getattr(f, name)
+            assert value.dtype.str == spec.dtype, name
+            assert value.shape == spec.shape(**sizes, K=len(f.trunc_index)), name
+    batch = stack_fragments(fragments[:4])
+    assert type(batch) is FragmentBatch
+    k = sum(len(f.trunc_index) for f in fragments[:4])
+    for name, spec in array_specs(FragmentBatch).items():
+        value = getattr(batch, name)
+        assert value.dtype.str == spec.dtype, name
+        assert value.shape == spec.shape(**sizes, K=k, B=4), name
+
+
+def test_the_initial_priority_is_read_off_the_fragment():
+    _, fragments = collect(True, 20)
+    f = fragments[0]
+    assert initial_priority(f, "trajectory", 0.0, 0.9) == pytest.approx(float(f.td_abs.sum()))
+    with_return = fragment_priority(f.td_abs, "trajectory", 0.5, f.rewards * f.reward_scale,
+                                    f.discounts(0.9))
+    assert initial_priority(f, "trajectory", 0.5, 0.9) == pytest.approx(with_return)

@@ -17,6 +17,9 @@ CORE_ALLOWED = {"torch", "numpy", "tpdeb_core", "__future__", "math", "copy", "d
                 "typing", "collections", "abc", "itertools", "functools", "enum", "numbers"}
 PROTOCOL_ALLOWED = {"numpy", "msgpack", "zstandard", "protocol", "__future__", "dataclasses",
                     "typing", "collections", "math", "re", "itertools", "functools", "enum"}
+# The one edge between the two: the fragment's schema. The data's shape is the algorithm's, the
+# wire validates it (DESIGN §1); that module imports no other of ours.
+FRAGMENT_SCHEMA = "tpdeb.tpdeb_core.schema"
 
 
 def root_of(module: str) -> str:
@@ -25,17 +28,23 @@ def root_of(module: str) -> str:
     return parts[1] if parts[0] == "tpdeb" and len(parts) > 1 else parts[0]
 
 
-def imported_roots(package: str) -> dict[str, set[str]]:
+def imported_modules(package: str) -> dict[str, set[str]]:
+    """Every module each file of `package` imports (`from m import x` counts as m)."""
     found = {}
     for path in (ROOT / package).rglob("*.py"):
-        roots = set()
+        modules = set()
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Import):
-                roots |= {root_of(alias.name) for alias in node.names}
+                modules |= {alias.name for alias in node.names}
             elif isinstance(node, ast.ImportFrom) and node.level == 0:
-                roots.add(root_of(node.module))
-        found[str(path.relative_to(ROOT))] = roots
+                modules.add(node.module)
+        found[str(path.relative_to(ROOT))] = modules
     return found
+
+
+def imported_roots(package: str) -> dict[str, set[str]]:
+    return {path: {root_of(m) for m in modules}
+            for path, modules in imported_modules(package).items()}
 
 
 def test_our_modules_import_each_other_under_the_installed_name():
@@ -60,11 +69,20 @@ def test_core_imports_only_torch_numpy_and_pure_stdlib():
     assert not bad, f"tpdeb_core must stay pure (no I/O, no services/protocol): {bad}"
 
 
-def test_protocol_imports_only_numpy_msgpack_zstandard_and_pure_stdlib():
-    # no services, no core, no torch, no Zenoh: the wire format knows bytes and names only
-    bad = {m: sorted(r - PROTOCOL_ALLOWED) for m, r in imported_roots("protocol").items()
-           if r - PROTOCOL_ALLOWED}
+def test_protocol_imports_only_numpy_msgpack_zstandard_pure_stdlib_and_the_fragment_schema():
+    # no services, no torch, no Zenoh, of the core only the fragment's schema
+    bad = {}
+    for path, modules in imported_modules("protocol").items():
+        wrong = {m for m in modules if m != FRAGMENT_SCHEMA and root_of(m) not in PROTOCOL_ALLOWED}
+        if wrong:
+            bad[path] = sorted(wrong)
     assert not bad, bad
+    schema = imported_modules("tpdeb_core")["tpdeb_core/schema.py"]
+    ours = sorted(m for m in schema if m.split(".")[0] == "tpdeb")
+    assert not ours, f"tpdeb_core/schema.py imports {ours}: protocol would load them too"
+    out = python_c("import sys, tpdeb.protocol; print(sorted(m for m in sys.modules "
+                   "if m.startswith('tpdeb.tpdeb_core.')), 'torch' in sys.modules)")
+    assert out.stdout.split() == [f"['{FRAGMENT_SCHEMA}']", "False"], out.stdout + out.stderr
 
 
 def test_the_wheel_installs_one_top_level_name(tmp_path):

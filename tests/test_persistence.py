@@ -8,6 +8,7 @@ import pickle
 import threading
 import zlib
 
+import msgpack
 import numpy as np
 import pytest
 
@@ -15,6 +16,7 @@ from tpdeb.services.store.persistence import (
     MARKER,
     STATE_FILE,
     CorruptRecord,
+    Incompatible,
     ReplayPersistence,
     append_record,
     decode_state,
@@ -238,3 +240,53 @@ def test_a_saved_replay_state_is_checked_field_by_field(damage, match):
     damage(state)
     with pytest.raises(ConfigError, match=match):
         _check_saved(state)
+
+
+def test_a_snapshot_of_another_version_ends_the_load_instead_of_being_passed_over(tmp_path):
+    """Damage falls back to an older snapshot; another version's data does not (the older one is
+    just as foreign, and the log no longer covers what the snapshot held)."""
+    p = ReplayPersistence(tmp_path)
+    p.snapshot({"n": 1}, ["x"], encode, wait=True)
+    p.close()
+
+    def refuse(payload: bytes):
+        raise Incompatible(f"{payload!r} is of another version")
+
+    with pytest.raises(Incompatible, match="another version"):
+        ReplayPersistence(tmp_path).load(refuse)
+
+
+def _of_version(payload: bytes, version: int) -> bytes:
+    wire = msgpack.unpackb(payload, raw=False)
+    wire["v"] = version
+    return msgpack.packb(wire, use_bin_type=True)
+
+
+@pytest.mark.parametrize("where", ["log", "snapshot"])
+def test_a_run_dir_written_under_another_schema_version_is_refused_in_one_line(tmp_path, where):
+    from tests.test_protocol import ACT_DIM, OBS_DIM, T, make_traj
+    from tpdeb.protocol import SCHEMA_VERSION
+    from tpdeb.protocol import encode as encode_message
+    from tpdeb.services.config.service import ReplayServiceConfig
+    from tpdeb.services.net.memory import MemoryBus
+    from tpdeb.services.net.wire import run_spec
+    from tpdeb.services.process import StopSignal
+    from tpdeb.services.replay import ReplayServer
+
+    old = _of_version(encode_message(make_traj()), SCHEMA_VERSION - 1)
+    p = ReplayPersistence(tmp_path / "replay")
+    if where == "log":
+        p.log(old)
+    else:  # nothing logged after it: passing it over would silently start afresh
+        p.snapshot({"format": 2}, [old], lambda item: item, wait=True)
+    p.close()
+    config = ReplayServiceConfig(run_id="r", connect=("tcp/127.0.0.1:1",), env_id="Hopper-v5",
+                                 fragment_len=T, batch_fragments=2, persist=True)
+    spec = run_spec(config, OBS_DIM, ACT_DIM, -np.ones(ACT_DIM), np.ones(ACT_DIM))
+    server = ReplayServer(config, spec, MemoryBus().session(), StopSignal())
+    with pytest.raises(Incompatible) as err:
+        server.enable_persistence(tmp_path / "replay")
+    line = str(err.value)
+    assert f"schema version {SCHEMA_VERSION - 1}" in line and "--restore never" in line
+    assert "\n" not in line and server.persistence is None and len(server.replay) == 0
+    server.close()

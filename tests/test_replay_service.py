@@ -27,6 +27,8 @@ from tpdeb.services.net.session import join_run
 from tpdeb.services.net.wire import run_spec
 from tpdeb.services.process import StopSignal
 from tpdeb.services.replay import ReplayServer
+from tpdeb.tpdeb_core.fragments import FragmentBatch
+from tpdeb.tpdeb_core.schema import STACKED
 
 RUN = "mem"
 
@@ -114,6 +116,20 @@ def test_a_sample_request_before_enough_steps_gets_a_not_ready_reply(replay):
     (reply,) = ask_for_a_batch(bus, server)
     assert reply.ready and reply.batch.obs.shape == (T + 1, 2, OBS_DIM)
     assert set(reply.keys.tolist()) <= {0, 1} and reply.inserted_steps == 2 * T
+
+
+def test_the_replay_stacks_the_fragments_it_decoded_and_the_learner_gets_them_as_sent(replay):
+    server, bus = replay
+    sent = [make_traj(seed=0), make_traj(seed=1)]
+    for fragment in sent:
+        send(bus, fragment)
+    (reply,) = ask_for_a_batch(bus, server)
+    assert reply.ready and type(reply.batch) is FragmentBatch
+    for column, key in enumerate(reply.keys.tolist()):  # keys count up from 0 in arrival order
+        for name in STACKED:
+            np.testing.assert_array_equal(getattr(reply.batch, name)[:, column],
+                                          getattr(sent[key], name))
+    assert reply.batch.policy_version.tolist() == [7, 7]
 
 
 def test_the_outbox_holds_back_pressure_and_resends_what_is_not_acknowledged():

@@ -1,10 +1,10 @@
 """Fragments: T-step slices of one env's stream, built from a gymnasium vector env (DESIGN §2).
 
-A fragment holds obs[T+1] (the last one is the bootstrap observation), raw actions[T],
-rewards[T] (raw, scaled at learn time), terminated/truncated[T], the behaviour policy's
-mean/log-std/log-prob[T], the actor's value estimates V[T+1], and for every truncated step the
-real final observation (`trunc_index`, `trunc_obs`): truncation bootstraps from it, termination
-does not. The step in which a NEXT_STEP-mode vector env resets an env is never recorded.
+What a fragment holds is declared once, in `tpdeb_core/schema.py` (`Fragment`, `FragmentBatch`,
+re-exported here); this module fills it: the Collector writes every env's step into buffers
+sized from that declaration, `stack_fragments` stacks B fragments into a batch, and
+`initial_priority` is the replay priority of one. The step in which a NEXT_STEP-mode vector env
+resets an env is never recorded.
 
 The env is injected (anything with gymnasium's vector API); this module imports neither
 gymnasium nor anything that does I/O.
@@ -12,75 +12,27 @@ gymnasium nor anything that does I/O.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy
+from tpdeb.tpdeb_core.policy import NumpyPolicy
 from tpdeb.tpdeb_core.replay import PRIORITY_MODES
+from tpdeb.tpdeb_core.schema import STACKED, Fragment, FragmentBatch, array_specs
+
+__all__ = ["Collector", "Fragment", "FragmentBatch", "fragment_priority", "fragment_return",
+           "initial_priority", "stack_fragments"]
+
+# What the Collector writes at every step: each per-step field but td_abs (computed when the
+# fragment is complete), plus the actor's value estimates, which td_abs needs and nothing ships.
+_RECORDED = {name: spec for name, spec in array_specs(Fragment).items()
+             if spec.dims.split()[0] in ("T", "T+1") and name != "td_abs"}
 
 
-@dataclass
-class Fragment:
-    obs: np.ndarray  # float32 [T+1, obs_dim], raw
-    actions: np.ndarray  # float32 [T, act_dim], raw Gaussian samples (before clipping)
-    rewards: np.ndarray  # float32 [T], raw
-    terminated: np.ndarray  # bool [T]
-    truncated: np.ndarray  # bool [T]
-    behaviour_mean: np.ndarray  # float32 [T, act_dim]
-    behaviour_log_std: np.ndarray  # float32 [T, act_dim]
-    behaviour_logp: np.ndarray  # float32 [T]
-    values: np.ndarray  # float32 [T+1], the actor's V on normalised obs
-    trunc_index: np.ndarray  # int32 [K], steps that were truncated
-    trunc_obs: np.ndarray  # float32 [K, obs_dim], their real final observations
-    disc_returns: np.ndarray  # float32 [T], running discounted return (reward-scale moments)
-    td_abs: np.ndarray  # float32 [T], |δ_t| under the actor's value net (initial priority)
-    policy_version: int = 0
-    actor_id: int = 0
-    env_index: int = 0
-    seq: int = 0
-
-    @property
-    def num_steps(self) -> int:
-        return int(self.rewards.shape[0])
-
-    def discounts(self, gamma: float) -> np.ndarray:
-        """γ_t: zero where the episode ended (truncation bootstraps through the reward)."""
-        return gamma * ~(self.terminated | self.truncated)
-
-    def initial_priority(self, mode: str, kappa: float, gamma: float, reward_scale: float):
-        return fragment_priority(self.td_abs, mode, kappa, self.rewards * reward_scale,
-                                 self.discounts(gamma))
-
-
-# The per-step fields the learner trains on, stacked along a new batch axis 1.
-BATCH_STEP_FIELDS = ("obs", "actions", "rewards", "terminated", "truncated", "behaviour_mean",
-                     "behaviour_log_std", "behaviour_logp")
-
-
-@dataclass
-class FragmentBatch:
-    """B fragments stacked time-major, what `Learner.step` trains on. The replay server builds
-    it once per sample and ships it as it is; the learner does no per-fragment work."""
-
-    obs: np.ndarray  # float32 [T+1, B, obs_dim], raw
-    actions: np.ndarray  # float32 [T, B, act_dim]
-    rewards: np.ndarray  # float32 [T, B], raw
-    terminated: np.ndarray  # bool [T, B]
-    truncated: np.ndarray  # bool [T, B]
-    behaviour_mean: np.ndarray  # float32 [T, B, act_dim]
-    behaviour_log_std: np.ndarray  # float32 [T, B, act_dim]
-    behaviour_logp: np.ndarray  # float32 [T, B]
-    trunc_t: np.ndarray  # int32 [K], time index of each truncated step
-    trunc_b: np.ndarray  # int32 [K], its fragment
-    trunc_obs: np.ndarray  # float32 [K, obs_dim], its real final observation
-    policy_version: np.ndarray  # int64 [B], the behaviour policy of each fragment
-
-
-def stack_fragments(fragments) -> FragmentBatch:
-    """Stack fragments (anything with Fragment's attribute names: the wire's Trajectory too)."""
-    stacked = {name: np.stack([getattr(f, name) for f in fragments], axis=1)
-               for name in BATCH_STEP_FIELDS}
+def stack_fragments(fragments: Sequence[Fragment]) -> FragmentBatch:
+    """B fragments (as the Collector made them or as the wire decoded them) → one batch."""
+    stacked = {name: np.stack([getattr(f, name) for f in fragments], axis=1) for name in STACKED}
     obs_dim = stacked["obs"].shape[-1]
     trunc_t = [np.asarray(f.trunc_index, np.int32) for f in fragments]
     return FragmentBatch(
@@ -91,6 +43,13 @@ def stack_fragments(fragments) -> FragmentBatch:
         trunc_obs=np.concatenate([np.asarray(f.trunc_obs, np.float32).reshape(-1, obs_dim)
                                   for f in fragments]),
         policy_version=np.array([f.policy_version for f in fragments], np.int64))
+
+
+def initial_priority(fragment: Fragment, mode: str, kappa: float, gamma: float):
+    """The replay priority a fragment enters with: `fragment_priority` of its td_abs (and, for
+    κ > 0, of its return under the reward scale the actor used)."""
+    return fragment_priority(fragment.td_abs, mode, kappa,
+                             fragment.rewards * fragment.reward_scale, fragment.discounts(gamma))
 
 
 def fragment_return(rewards_scaled: np.ndarray, discounts: np.ndarray) -> np.ndarray:
@@ -149,6 +108,7 @@ class Collector:
     action_high: np.ndarray
     seed: int = 0
     actor_id: int = 0
+    incarnation: int = 0  # the actor process's run, stamped on every fragment (de-duplication)
     same_step_autoreset: bool = True
     policy_version: int = 0
     episodes: list = field(default_factory=list)
@@ -159,18 +119,10 @@ class Collector:
         self.obs = np.asarray(obs, dtype=np.float32)
         self.rng = np.random.default_rng(self.seed)
         T, obs_dim, act_dim = self.fragment_len, self.obs.shape[1], self.policy.act_dim
-        self.buf = {
-            "obs": np.zeros((n, T, obs_dim), np.float32),
-            "actions": np.zeros((n, T, act_dim), np.float32),
-            "rewards": np.zeros((n, T), np.float32),
-            "terminated": np.zeros((n, T), bool),
-            "truncated": np.zeros((n, T), bool),
-            "behaviour_mean": np.zeros((n, T, act_dim), np.float32),
-            "behaviour_log_std": np.zeros((n, T, act_dim), np.float32),
-            "behaviour_logp": np.zeros((n, T), np.float32),
-            "values": np.zeros((n, T), np.float32),
-            "disc_returns": np.zeros((n, T), np.float32),
-        }
+        # [num_envs, T, …] per recorded field (obs too: its bootstrap row is added at the end)
+        self.buf = {name: np.zeros((n, T, *spec.shape(T=T, obs_dim=obs_dim, act_dim=act_dim)[1:]),
+                                   spec.dtype) for name, spec in _RECORDED.items()}
+        self.buf["values"] = np.zeros((n, T), np.float32)  # V(s_t), for td_abs only
         self.pos = np.zeros(n, np.int64)  # steps recorded in each env's current fragment
         self.version = np.zeros(n, np.int64)  # policy version at each fragment's first step
         self.trunc: list[list[tuple[int, np.ndarray]]] = [[] for _ in range(n)]
@@ -236,11 +188,11 @@ class Collector:
         fragments = []
         for j, i in enumerate(env_indices.tolist()):
             b = {key: buf[i].copy() for key, buf in self.buf.items()}
+            values = np.append(b.pop("values"), np.float32(boot_values[j]))
             trunc = self.trunc[i]
             trunc_index = np.array([t for t, _ in trunc], dtype=np.int32)
             trunc_obs = (np.stack([o for _, o in trunc]).astype(np.float32) if trunc
                          else np.zeros((0, obs_dim), np.float32))
-            values = np.append(b.pop("values"), np.float32(boot_values[j]))
             next_values = values[1:].astype(np.float64)
             if trunc:
                 next_values[trunc_index] = self.policy.values_of(trunc_obs)
@@ -248,9 +200,10 @@ class Collector:
                 - values[:-1]
             b["obs"] = np.concatenate([b["obs"], next_obs[i][None]])
             fragments.append(Fragment(
-                **b, values=values, trunc_index=trunc_index, trunc_obs=trunc_obs,
+                **b, trunc_index=trunc_index, trunc_obs=trunc_obs,
                 td_abs=np.abs(td).astype(np.float32), policy_version=int(self.version[i]),
-                actor_id=self.actor_id, env_index=i, seq=self.seq))
+                reward_scale=float(scale), actor_id=self.actor_id, env_index=i, seq=self.seq,
+                incarnation=self.incarnation))
             self.seq += 1
             self.pos[i] = 0
             self.trunc[i] = []

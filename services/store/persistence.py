@@ -19,7 +19,9 @@ expensive part (encoding every item, writing, fsync) runs on a background thread
 samples go on while it is written.
 
 Record format (log segments and a snapshot's items file alike): u32 length, u32 CRC-32, bytes.
-A torn record at the end of the last segment (a crash mid-write) ends the log there.
+A torn record at the end of the last segment (a crash mid-write) ends the log there. The records
+are the fragments' wire bytes, so each names its schema version; one of another version makes
+the item decoder raise `Incompatible`, which ends the restore (one line, no fallback).
 """
 
 from __future__ import annotations
@@ -51,6 +53,11 @@ _DTYPES = frozenset(np.dtype(t).str for t in (
 
 class CorruptRecord(Exception):
     pass
+
+
+class Incompatible(Exception):
+    """Whole stored data that this version does not read (another schema version): refused at
+    load, never passed over for an older snapshot, which would be just as foreign."""
 
 
 def _pack_value(value):
@@ -179,12 +186,15 @@ class ReplayPersistence:
 
     def load(self, decode_item: Callable[[bytes], object]) -> tuple[dict | None, Iterator[bytes]]:
         """(the newest complete snapshot's state or None, the log records written after it).
-        A snapshot whose files fail their marker's sizes/CRCs is skipped for the one before."""
+        A snapshot whose files fail their marker's sizes/CRCs is skipped for the one before;
+        `decode_item` raising Incompatible ends the load."""
         state, first_segment = None, 0
         for path in reversed(self.complete_snapshots()):
             try:
                 state, first_segment = self._read_snapshot(path, decode_item)
                 break
+            except Incompatible:
+                raise
             except Exception as exc:  # noqa: BLE001 - any unreadable snapshot: use the one before
                 self.skipped = f"{path.name}: {exc}"
         segments = [p for p in self._segments() if self._index(p) >= first_segment]
