@@ -46,6 +46,7 @@ def load_policy(path: Path, env_id: str | None):
     """(model, env_id) from a checkpoint; refuses one trained on another env than `env_id`."""
     from tpdeb.services.store.checkpoint import read_checkpoint
     from tpdeb.tpdeb_core.model import ActorCritic
+    from tpdeb.tpdeb_core.policy import dims_of, policy_std_of
 
     try:
         state = read_checkpoint(path)
@@ -60,10 +61,9 @@ def load_policy(path: Path, env_id: str | None):
         raise EvalError(f"{path} was trained on {trained_on}, not {env_id}: pass a checkpoint "
                         f"of {env_id} or drop --env-id")
     weights = state["model"]
-    obs_dim = int(weights["obs_rms.mean"].shape[0])
-    act_dim = int(weights["policy.log_std"].shape[0])
-    model = ActorCritic(obs_dim, act_dim, tuple(config.get("hidden_sizes", (64, 64))),
-                        obs_clip=config.get("obs_clip", 10.0))
+    obs_dim, act_dim, hidden = dims_of(weights)
+    model = ActorCritic(obs_dim, act_dim, hidden, obs_clip=config.get("obs_clip", 10.0),
+                        policy_std=policy_std_of(weights))
     try:
         model.load_state_dict(weights)
     except RuntimeError as exc:

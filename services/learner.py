@@ -51,7 +51,7 @@ from tpdeb.services.config.service import LearnerServiceConfig
 from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.model_wire import model_for, params_message
 from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
-from tpdeb.services.net.wire import batch_of, finite_values
+from tpdeb.services.net.wire import finite_values
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.services.store.checkpoint import (
@@ -82,7 +82,10 @@ class LearnerService:
         self.keys = Keys(config.run_id)
         seed_everything(config.seed)
         self.model = model_for(spec)
-        self.learner = Learner(self.model, config.loss_config())
+        try:  # the run spec's model against this learner's loss settings
+            self.learner = Learner(self.model, config.loss_config())
+        except ValueError as exc:
+            raise ConfigError(f"the run's policy_std={spec.policy_std}: {exc}") from None
         self.run_dir = config.default_run_dir()
         self.global_step = 0
         restored_version = -1
@@ -350,7 +353,7 @@ class LearnerService:
         if cfg.anneal_lr:
             progress = min(1.0, self.global_step / cfg.total_timesteps)
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
-        fragments = batch_of(batch.batch)
+        fragments = batch.batch  # the FragmentBatch as decoded
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
         result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,

@@ -50,8 +50,9 @@ def config_for(run_dir, **extra) -> LearnerServiceConfig:
     return LearnerServiceConfig(run_id="t", env_id=ENV, run_dir=str(run_dir), **extra)
 
 
-def spec_for(obs_dim=4, act_dim=1, env_id=ENV, hidden_sizes=(64, 64)):
-    config = LearnerServiceConfig(env_id=env_id, hidden_sizes=hidden_sizes)
+def spec_for(obs_dim=4, act_dim=1, env_id=ENV, hidden_sizes=(64, 64), policy_std="global"):
+    config = LearnerServiceConfig(env_id=env_id, hidden_sizes=hidden_sizes,
+                                  policy_std=policy_std, loss_impl="autograd")
     return run_spec(config, obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim))
 
 
@@ -97,7 +98,8 @@ def test_periodic_checkpoints_are_named_rotated_and_the_final_one_stays(tmp_path
     state = ckpt.load(final)
     assert state["updates"] == 50 and state["global_step"] == 5000
     assert state["version"] == 50  # fresh run: versions are the update count
-    assert state["spec"] == {"env_id": ENV, "obs_dim": 4, "act_dim": 1, "hidden_sizes": [64, 64]}
+    assert state["spec"] == {"env_id": ENV, "obs_dim": 4, "act_dim": 1, "hidden_sizes": [64, 64],
+                             "policy_std": "global"}
     assert state["config"]["env_id"] == ENV and state["config"]["keep_checkpoints"] == 2
     assert service.checkpoints_written == 5 and service.checkpoint_s > 0
 
@@ -222,6 +224,28 @@ def test_a_checkpoint_of_another_env_is_refused(tmp_path):
     # same env, other network sizes: refused too, before torch's size-mismatch error
     with pytest.raises(ConfigError, match="hidden sizes"):
         service_for(tmp_path, resume_from=resume, spec=spec_for(11, 3, "Hopper-v5", (32,)))
+
+
+def test_a_checkpoint_from_before_the_policy_setting_loads_and_another_policy_is_refused(tmp_path):
+    """Checkpoints written before `policy_std` existed record no such field and hold the
+    global log-std's weights under the same names: they resume; a run whose policy has the
+    other standard deviation refuses them in one line naming the setting."""
+    service, _ = service_for(tmp_path)
+    service.learner.updates = 5
+    path = service.save_checkpoint(ckpt.FINAL)
+    close(service)
+    state = ckpt.read_checkpoint(path)
+    del state["spec"]["policy_std"]  # as the earlier layout wrote it
+    ckpt.save_atomic(state, path)
+    resume = ckpt.choose_resume("auto", tmp_path, print)
+    restored, _ = service_for(tmp_path, resume_from=resume)
+    assert restored.learner.updates == 5
+    close(restored)
+    with pytest.raises(ConfigError) as refused:
+        service_for(tmp_path, resume_from=resume, spec=spec_for(policy_std="state"),
+                    loss_impl="autograd")
+    line = str(refused.value)
+    assert "\n" not in line and "global log-std" in line and "--policy-std global" in line
 
 
 # -- versions --------------------------------------------------------------------------------

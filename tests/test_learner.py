@@ -14,7 +14,7 @@ from tpdeb.tpdeb_core.vtrace import vtrace_terms
 
 
 def impact_surrogate(logp, behaviour_logp, target_logp, advantages, clip_coef, rho_target_bar):
-    """The IMPACT surrogate written plainly in torch, the reference for `LossTerms`: per step
+    """The IMPACT surrogate written plainly in torch, an independent reference: per step
     −min(r·A, clip(r, 1−ε, 1+ε)·A) with r = is · π_θ/μ, is = min(μ/π_θ̄, ρ̄_target) (the clip
     centred on the target policy), and log r."""
     log_ratio = logp - behaviour_logp
@@ -26,9 +26,9 @@ def impact_surrogate(logp, behaviour_logp, target_logp, advantages, clip_coef, r
     return -torch.min(ratio * advantages, clipped * advantages), log_ratio
 
 
-def fragments_and_model(n=6, seed=0):
+def fragments_and_model(n=6, seed=0, policy_std="global"):
     torch.manual_seed(seed)
-    model = ActorCritic(3, 1)
+    model = ActorCritic(3, 1, policy_std=policy_std)
     envs = ScriptedVectorEnv([5, 7, 9], [True, False, False])
     collector = Collector(envs, model.numpy_policy(), 8, 0.99, np.array([-1.0], np.float32),
                           np.array([1.0], np.float32), seed=seed)
@@ -126,12 +126,14 @@ def reference_update(model, target_policy, batch, weights, cfg: LossConfig, kl_c
     what Learner.step's reduced terms must equal. Returns the loss terms after one Adam step."""
     obs = model.norm_obs(torch.tensor(batch.obs))
     actions = torch.tensor(batch.actions)
-    dist = Independent(Normal(*model.policy(obs[:-1])[:1], model.policy.log_std.exp()), 1)
+    mean, log_std = model.policy(obs[:-1])
+    dist = Independent(Normal(mean, log_std.exp().expand_as(mean)), 1)
     logp = dist.log_prob(actions)
     values = model.value(obs)
     with torch.no_grad():
         t_mean, t_log_std = target_policy(obs[:-1])
-        target_logp = Independent(Normal(t_mean, t_log_std.exp()), 1).log_prob(actions)
+        target_logp = Independent(Normal(t_mean, t_log_std.exp().expand_as(t_mean)),
+                                  1).log_prob(actions)
         rewards = torch.tensor(batch.rewards) * model.reward_scale()
         discounts = cfg.gamma * torch.tensor(~(batch.terminated | batch.truncated)).float()
         for t, b, o in zip(batch.trunc_t, batch.trunc_b, batch.trunc_obs, strict=True):
@@ -159,18 +161,23 @@ def reference_update(model, target_policy, batch, weights, cfg: LossConfig, kl_c
     return {k: v.item() for k, v in terms.items()}
 
 
-def test_step_equals_the_plainly_written_loss_off_policy_with_truncations_and_weights():
-    fragments, model = fragments_and_model(n=6, seed=3)
+@pytest.mark.parametrize("loss_impl,policy_std", [("closed_form", "global"),
+                                                  ("autograd", "global"), ("autograd", "state")])
+def test_step_equals_the_plainly_written_loss_off_policy_with_truncations_and_weights(
+        loss_impl, policy_std):
+    fragments, model = fragments_and_model(n=6, seed=3, policy_std=policy_std)
     batch = stack_fragments(fragments)
     assert len(batch.trunc_t) and batch.terminated.any()  # both episode ends are in the batch
     model.obs_rms.update(np.random.default_rng(0).normal(size=(50, 3)))
     model.ret_rms.update(np.random.default_rng(1).normal(0, 3, size=50))
-    cfg = LossConfig(kl_coef=0.3, ent_coef=0.01, vtrace_lambda=0.95, learning_rate=1e-3)
+    cfg = LossConfig(kl_coef=0.3, ent_coef=0.01, vtrace_lambda=0.95, learning_rate=1e-3,
+                     loss_impl=loss_impl)
     learner = Learner(model, cfg)
     with torch.no_grad():  # π_θ, π_θ̄ and μ all differ
         for p in model.parameters():
             p.add_(0.05 * torch.randn_like(p))
-        learner.target_policy.log_std.add_(0.1)
+        for p in learner.target_policy.parameters():
+            p.add_(0.05 * torch.randn_like(p))
     reference_model = copy.deepcopy(model)
     target = copy.deepcopy(learner.target_policy)
     weights = np.array([0.2, 1.0, 0.5, 1.0, 0.7, 1.0], np.float32)

@@ -33,12 +33,14 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
-from tpdeb.services.net.wire import batch_message
-from tpdeb.tpdeb_core.fragments import stack_fragments
+from tpdeb.protocol.schema import field_rules
+from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch, stack_fragments
+from tpdeb.tpdeb_core.schema import array_specs
 
 T, OBS_DIM, ACT_DIM = 4, 3, 2
-RUN_SPEC = RunSpec("Hopper-v5", OBS_DIM, ACT_DIM, T, [64, 64], 0.99, 10.0, 0.0, "trajectory", 0.0,
-               np.full(ACT_DIM, -1, np.float32), np.ones(ACT_DIM, np.float32))
+RUN_SPEC = RunSpec("Hopper-v5", OBS_DIM, ACT_DIM, T, [64, 64], 0.99, 10.0, 0.0, "global",
+                   "trajectory", 0.0, np.full(ACT_DIM, -1, np.float32),
+                   np.ones(ACT_DIM, np.float32))
 ALL_TYPES = tuple(MESSAGE_TYPES.values())
 FUZZ_EXAMPLES = int(os.environ.get("TPDEB_FUZZ_EXAMPLES", "300"))
 FUZZ = settings(max_examples=FUZZ_EXAMPLES, deadline=None,
@@ -65,7 +67,7 @@ def make_traj(seed: int = 0, steps: int = T, obs_dim: int = OBS_DIM) -> Trajecto
         actor_id=3, seq=seed, env_index=1, policy_version=7, reward_scale=0.5,
         obs=f32(steps + 1, obs_dim), actions=f32(steps, ACT_DIM), rewards=f32(steps),
         terminated=terminated, truncated=truncated, behaviour_mean=f32(steps, ACT_DIM),
-        behaviour_log_std=f32(steps, ACT_DIM), behaviour_logp=f32(steps), values=f32(steps + 1),
+        behaviour_log_std=f32(steps, ACT_DIM), behaviour_logp=f32(steps),
         trunc_index=np.array([1], np.int32), trunc_obs=f32(1, obs_dim),
         disc_returns=f32(steps), td_abs=np.abs(f32(steps)))
 
@@ -76,7 +78,7 @@ def make_moments(shape) -> Moments:
 
 
 def make_batch(*fragments: Trajectory) -> Batch:
-    return batch_message(stack_fragments(fragments))
+    return stack_fragments(fragments)
 
 
 def make_reply() -> SampleReply:
@@ -91,7 +93,7 @@ def make_reply() -> SampleReply:
 MESSAGES = {
     "RunSpec": RUN_SPEC,
     "Trajectory": make_traj(),
-    "Ack": Ack(3, np.array([0, 1, 2], np.int64), 17),
+    "Ack": Ack(3, np.array([0, 1, 2], np.int64), 17),  # incarnation 17
     "Params": Params(4, {"pi.weight": np.ones((2, 3), np.float32), "log_std": np.zeros(2),
                          "norm.count": np.array(5, np.int64)}),
     "SampleRequest": SampleRequest(1, 8, 0.4),
@@ -159,6 +161,40 @@ def test_round_trip_details():
     assert step.priorities.shape == (2, T)
     assert decode(encode(RUN_SPEC), RunSpec).hidden_sizes == [64, 64]
     assert isinstance(decode(encode(Control("stop")), (Ack, Control)), Control)
+
+
+def test_fragments_and_batches_travel_as_the_cores_own_classes():
+    """One schema: the wire's Trajectory and Batch are the core's Fragment and FragmentBatch,
+    their array rules are the core's declarations, and what is decoded is stacked and trained
+    on as it is."""
+    assert Trajectory is Fragment and Batch is FragmentBatch
+    for cls in (Fragment, FragmentBatch):
+        rules = dict(field_rules(cls))
+        for name, spec in array_specs(cls).items():
+            assert (rules[name].dtypes, rules[name].shapes, rules[name].ge) == (
+                spec.dtype, spec.dims, spec.ge), name
+    fragments = [decode(encode(make_traj(i)), Trajectory, spec=RUN_SPEC) for i in range(3)]
+    assert all(type(f) is Fragment for f in fragments)
+    reply = decode(encode(dataclasses.replace(make_reply(), batch=stack_fragments(fragments[:2]))),
+                   SampleReply, spec=RUN_SPEC)
+    assert type(reply.batch) is FragmentBatch and reply.batch.obs.shape == (T + 1, 2, OBS_DIM)
+
+
+def test_nothing_travels_that_nobody_reads():
+    assert "values" not in {f.name for f in dataclasses.fields(Trajectory)}
+    assert "ingested" not in {f.name for f in dataclasses.fields(Ack)}
+    assert "source" not in {f.name for f in dataclasses.fields(Params)}
+
+
+def test_a_fragment_of_the_previous_schema_is_refused_as_another_version():
+    """Version 5 carried the actor's value estimates; such a fragment names its version and
+    is refused for it, not for its extra field."""
+    old = envelope(make_traj())
+    old["v"] = SCHEMA_VERSION - 1
+    old["body"]["values"] = envelope(make_traj())["body"]["obs"]
+    with pytest.raises(DecodeError) as err:
+        decode(msgpack.packb(old, use_bin_type=True), Trajectory)
+    assert err.value.kind == "version" and f"version {SCHEMA_VERSION - 1}" in err.value.detail
 
 
 def test_encode_normalises_layout_and_refuses_unwired_dtypes():

@@ -1,5 +1,6 @@
-"""The TPDEB learner: IMPACT surrogate on V-trace advantages, KL to the behaviour policy, soft
-target policy, prioritized-sample weights and new priorities (DESIGN §2, "Learner loss").
+"""The TPDEB learner (DESIGN §2, "The loss"): one update is the targets (V-trace, advantages,
+ratios, weights; `tpdeb_core/loss.py`) and then the update (the loss, its gradient, Adam, the
+soft target policy, the KL coefficient).
 
 Pure: a `Learner` takes fragments and replay weights and returns metrics and new priorities.
 Where the fragments come from and where parameters go is the caller's business.
@@ -14,13 +15,13 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from tpdeb.tpdeb_core import closed_form, loss, policy
 from tpdeb.tpdeb_core.adam import Adam
 from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
+from tpdeb.tpdeb_core.loss import LossTerms, Targets, mean_of, sample_std
 from tpdeb.tpdeb_core.loss_config import LossConfig
 from tpdeb.tpdeb_core.model import ActorCritic
-from tpdeb.tpdeb_core.moments import inverse_std
-from tpdeb.tpdeb_core.numpy_policy import LOG_2PI
-from tpdeb.tpdeb_core.vtrace import vtrace_arrays
+from tpdeb.tpdeb_core.policy import NUMPY
 
 
 @dataclass
@@ -30,93 +31,26 @@ class StepResult:
     priorities: list = field(default_factory=list)  # float (trajectory) or array (step) each
 
 
-def log_prob(mean: np.ndarray, log_std: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    """log N(a; m, σ) in numpy, summed over the last axis; σ = exp(log_std) is state-independent
-    [A]."""
-    z = (actions - mean) * np.exp(-log_std)
-    z *= z
-    return -0.5 * z.sum(-1) - (log_std.sum() + 0.5 * LOG_2PI * log_std.size)
+@dataclass
+class Prepared:
+    """One batch through the networks, and the loss's constants: what the update needs."""
 
-
-class LossTerms:
-    """The loss of one update and its gradient with respect to the networks' outputs.
-
-    With w the per-step weights (Σ w = 1), r = exp(log r) the surrogate's ratio, A the
-    advantages, d = a − m, σ⁻² = exp(−2 log σ):
-      pg = −Σ w·min(r·A, clip(r, 1−ε, 1+ε)·A) = −Σ w·A·clamp(r, lo, hi), where hi = 1+ε for
-           A > 0 (else ∞) and lo = 1−ε for A < 0 (else −∞): the same value and gradient;
-      value = ½ Σ w (V − v_s)²;  entropy = Σ_a log σ_a + A/2 (1 + log 2π);
-      KL(μ‖π) = Σ w ½ Σ_a [σ_μ²/σ² + (m_μ − m)²/σ² − 1 − 2 (log σ_μ − log σ)];
-      loss = pg + c_v·value − c_ent·entropy + λ_kl·KL.
-    ∂log r/∂m = d σ⁻², ∂log r/∂log σ = d² σ⁻² − 1 (per action dimension), ∂r/∂log r = r.
-    """
-
-    def __init__(self, cfg: LossConfig, kl_coef: float, f: FragmentBatch, w: np.ndarray,
-                 mean: np.ndarray, log_std: np.ndarray, values: np.ndarray, vs: np.ndarray,
-                 adv: np.ndarray, log_ratio: np.ndarray):
-        act_dim = log_std.size
-        inv_var = np.exp(-2.0 * log_std)
-        d = f.actions - mean
-        self.log_ratio = log_ratio
-        self.ratio = r = np.exp(log_ratio)
-        clip = cfg.clip_coef
-        positive = adv > 0
-        lo = np.where(positive, -np.inf, 1.0 - clip)
-        hi = np.where(positive, 1.0 + clip, np.inf)
-        weighted_adv = w * adv
-        self.pg_loss = -float((weighted_adv * np.clip(r, lo, hi)).sum())
-        # d pg / d log r: zero where the clamp holds r (torch.clamp's gradient passes at its
-        # bounds, as here)
-        g_logp = -weighted_adv * ((r >= lo) & (r <= hi)) * r  # [T, B]
-        v_error = values[:-1] - vs
-        self.value_loss = 0.5 * float((w * v_error * v_error).sum())
-        self.entropy = float(log_std.sum() + 0.5 * (1.0 + LOG_2PI) * act_dim)
-        w3 = w[..., None]
-        mu_gap = f.behaviour_mean - mean  # [T, B, A]
-        spread = (w3 * (np.exp(2.0 * f.behaviour_log_std) + mu_gap * mu_gap)).sum((0, 1))
-        mu_log_std = float((w3 * f.behaviour_log_std).sum())
-        self.kl = 0.5 * float((inv_var * spread).sum() - act_dim
-                              - 2.0 * (mu_log_std - log_std.sum()))
-        g_pg = g_logp[..., None] * d  # [T, B, A], times σ⁻² below
-        self.grad_mean = ((g_pg - kl_coef * w3 * mu_gap) * inv_var).astype(np.float32)
-        self.grad_log_std = ((g_pg * d).sum((0, 1)) * inv_var - g_logp.sum() - cfg.ent_coef
-                             + kl_coef * (1.0 - inv_var * spread)).astype(np.float32)
-        self.grad_values = np.zeros_like(values, dtype=np.float32)
-        self.grad_values[:-1] = cfg.vf_coef * w * v_error
-
-
-def mean_of(x: np.ndarray) -> float:
-    """The mean of all elements (np.mean's Python layers cost ~15 µs a call, measured in a
-    profile of Learner.step; a reduction alone a few)."""
-    return float(np.add.reduce(x, axis=None)) / x.size
-
-
-def sample_std(centred: np.ndarray) -> float:
-    """The unbiased standard deviation of already centred values (for a [64, 8] batch: a dot
-    product, 0.6 µs, where np.std takes 7.5 µs)."""
-    flat = centred.ravel()
-    return math.sqrt(float(flat @ flat) / max(flat.size - 1, 1))
-
-
-def _layers(net: torch.nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    return [(m.weight, m.bias) for m in net if isinstance(m, torch.nn.Linear)]
-
-
-def _mlp(layers, x: torch.Tensor) -> torch.Tensor:
-    """The tanh MLP of `tpdeb_core.model.mlp` on its held weights: the same function without
-    nn.Module's call machinery (three calls per network per update add up at this size)."""
-    last = len(layers) - 1
-    for i, (weight, bias) in enumerate(layers):
-        x = torch.nn.functional.linear(x, weight, bias)
-        if i < last:
-            x = torch.tanh(x)
-    return x
+    mean: torch.Tensor  # π_θ's mean [T, B, A], with its graph
+    log_std: torch.Tensor  # its log-std: the parameter [A] or [T, B, A] from the head
+    values: torch.Tensor  # V_φ [T+1, B], with its graph
+    logp: np.ndarray  # log π_θ(a_t|s_t), no gradient
+    target_logp: np.ndarray  # log π_θ̄(a_t|s_t) (π_θ's when the clip is PPO's)
+    rewards: np.ndarray  # scaled, with truncations bootstrapped through them
+    discounts: np.ndarray  # γ_t, zero at episode ends
+    targets: Targets
 
 
 class Learner:
     """Owns the model, the target policy and the optimiser; `step` is one gradient update."""
 
     def __init__(self, model: ActorCritic, config: LossConfig):
+        if config.loss_impl == "closed_form":
+            closed_form.check_supported(model.policy.policy_std)
         self.model = model
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
@@ -125,9 +59,6 @@ class Learner:
         self.params = list(model.parameters())
         self.policy_params = list(model.policy.parameters())
         self.target_params = list(self.target_policy.parameters())
-        self.mean_layers = _layers(model.policy.mean)
-        self.value_layers = _layers(model.value_net)
-        self.target_layers = _layers(self.target_policy.mean)
         self.optimizer = Adam(self.params, lr=config.learning_rate, eps=config.adam_eps)
         self.kl_coef = config.kl_coef
         self.updates = 0
@@ -149,113 +80,98 @@ class Learner:
         from_prioritized: np.ndarray,
         step_weights: np.ndarray | None = None,
     ) -> StepResult:
-        """One update on `fragments` (B of them, stacked). `weights` [B] are the replay's
-        importance weights; in step mode `step_weights` [B, T] weigh each step instead (Σ of the
-        weights of the transitions drawn there, 0 where none was).
+        """One update on `fragments` (B of them, stacked): the targets, then the update.
+        `weights` [B] are the replay's importance weights; in step mode `step_weights` [B, T]
+        weigh each step instead (Σ of the weights of the transitions drawn there)."""
+        p = self.targets(fragments, weights, step_weights)
+        terms, grad_norm = self.update(fragments, p)
+        td_abs = np.abs(p.targets.rhos * p.targets.deltas)
+        return StepResult(self._metrics(fragments, p, terms, grad_norm),
+                          *self._new_priorities(td_abs, p.rewards, p.discounts, keys,
+                                                from_prioritized))
 
-        Every per-transition term of the loss (surrogate, value, entropy, KL) is the same
-        weighted mean Σ w·ℓ / Σ w. Normalising by Σ w rather than by the count keeps the terms
-        in proportion whatever the scale of the weights: step-level PER's weights
-        (p / p_min)^(−β) can all sit far below 1, and a count-normalised surrogate and value
-        loss then vanish beside an unweighted entropy bonus.
-
-        Only the networks run in torch. The loss is a function of their outputs — the policy
-        mean [T, B, A], the values [T+1, B] and the state-independent log-std [A] — whose
-        gradient with respect to those outputs has a closed form (`LossTerms`); it is computed
-        in numpy and handed to autograd for the networks' backward pass. At these sizes each
-        torch operation costs more in dispatch than in arithmetic, so the ~45 elementwise ops
-        of the loss and their backward nodes cost more than the few numpy expressions that
-        replace them. tests/test_learner.py holds it to the loss written plainly in torch."""
-        cfg, f = self.config, fragments
-        T, B = f.rewards.shape
-        anchored = cfg.clip_anchor == "target"
-
-        # -- inputs (current normaliser statistics; rewards scaled at learn time)
-        obs_mean, obs_inv_std = self._obs_affine()
-        obs_np = (f.obs - obs_mean) * obs_inv_std
-        np.clip(obs_np, -self.model.obs_clip, self.model.obs_clip, out=obs_np)
-        obs = torch.from_numpy(obs_np)  # [T+1, B, obs_dim]
-        if step_weights is not None:
-            w = np.asarray(step_weights, np.float32)[:, :T].T.copy()
-        else:
-            w = np.broadcast_to(np.asarray(weights, np.float32), (T, B)).copy()
-        w /= max(float(w.sum()), 1e-12)
-
-        # -- the networks (the only part autograd sees)
-        mean_t = _mlp(self.mean_layers, obs[:-1])  # [T, B, A]
-        values_t = _mlp(self.value_layers, obs).squeeze(-1)  # [T+1, B]
+    def targets(self, f: FragmentBatch, weights: np.ndarray,
+                step_weights: np.ndarray | None = None) -> Prepared:
+        """The networks on the batch (current normaliser statistics; rewards scaled at learn
+        time) and the loss's constants: V-trace targets, advantages, ratios, weights."""
+        obs_mean, obs_inv_std = self.model.obs_affine()
+        obs = torch.from_numpy(policy.normalize(f.obs, obs_mean, obs_inv_std,
+                                                self.model.obs_clip, NUMPY))  # [T+1, B, obs]
+        mean, log_std = self.model.policy(obs[:-1])
+        values = self.model.value(obs)
         with torch.no_grad():
-            mean, values = mean_t.detach().numpy(), values_t.detach().numpy()
-            log_std = self.model.policy.log_std.detach().numpy()
-            logp = log_prob(mean, log_std, f.actions)
-            if anchored:
-                t_mean = _mlp(self.target_layers, obs[:-1]).numpy()
-                t_logp = log_prob(t_mean, self.target_policy.log_std.numpy(), f.actions)
-            else:  # PPO: V-trace toward the policy being trained
-                t_logp = logp
-            rewards = f.rewards * np.float32(self.model.reward_scale())
-            discounts = (cfg.gamma * ~(f.terminated | f.truncated)).astype(np.float32)
-            if len(f.trunc_t):
-                # Truncation: bootstrap from the real final observation through the reward and
-                # cut the trace there (discount 0), so nothing flows across the episode end.
-                final_obs = np.clip((f.trunc_obs - obs_mean) * obs_inv_std,
-                                    -self.model.obs_clip, self.model.obs_clip)
-                final_values = _mlp(self.value_layers, torch.from_numpy(final_obs))
-                not_term = ~f.terminated[f.trunc_t, f.trunc_b]
-                np.add.at(rewards, (f.trunc_t, f.trunc_b),
-                          cfg.gamma * not_term * final_values.squeeze(-1).numpy())
+            logp = policy.log_prob(mean.numpy(force=True), log_std.numpy(force=True),
+                                   f.actions, NUMPY)
+            target_logp = logp
+            if self.config.clip_anchor == "target":
+                t_mean, t_log_std = self.target_policy(obs[:-1])
+                target_logp = policy.log_prob(t_mean.numpy(), t_log_std.numpy(), f.actions,
+                                              NUMPY)
+            rewards, discounts = self._returns(f, obs_mean, obs_inv_std)
+            v = values.numpy(force=True)
+        w = loss.replay_weights(weights, step_weights, f.rewards.shape[0])
+        t = loss.targets(self.config, w, np.asarray(f.behaviour_logp, np.float32), target_logp,
+                         rewards, v, discounts)
+        return Prepared(mean, log_std, values, logp, target_logp, rewards, discounts, t)
 
-        # -- V-trace targets and advantages
-        b_logp = np.asarray(f.behaviour_logp, np.float32)
-        vs, adv, rhos, deltas = vtrace_arrays(
-            b_logp, t_logp, rewards, values[:-1], values[-1], discounts, cfg.rho_bar, cfg.c_bar,
-            cfg.rho_pg_bar, cfg.vtrace_lambda)
-        if cfg.norm_adv:
-            adv = adv - mean_of(adv)
-            adv /= sample_std(adv) + 1e-8
-        # IMPACT: r = is · π_θ/μ with is = min(μ/π_θ̄, ρ̄_target), the clip centred on the target
-        # policy; PPO: r = π_θ/μ.
-        log_is = (np.minimum(b_logp - t_logp, math.log(cfg.rho_target_bar)) if anchored
-                  else 0.0)
-        terms = LossTerms(cfg, self.kl_coef, f, w, mean, log_std, values, vs, adv,
-                          logp - b_logp + log_is)
+    def _returns(self, f: FragmentBatch, obs_mean, obs_inv_std):
+        """Scaled rewards and discounts γ_t. A truncation bootstraps from the real final
+        observation through the reward and cuts the trace there (discount 0), so nothing flows
+        across the episode end; a termination does not bootstrap."""
+        gamma = self.config.gamma
+        rewards = f.rewards * np.float32(self.model.reward_scale())
+        discounts = (gamma * ~(f.terminated | f.truncated)).astype(np.float32)
+        if len(f.trunc_t):
+            final_obs = policy.normalize(f.trunc_obs, obs_mean, obs_inv_std, self.model.obs_clip,
+                                         NUMPY)
+            final_values = self.model.value(torch.from_numpy(final_obs)).numpy()
+            not_term = ~f.terminated[f.trunc_t, f.trunc_b]
+            np.add.at(rewards, (f.trunc_t, f.trunc_b), gamma * not_term * final_values)
+        return rewards, discounts
 
-        # -- backward through the networks, the optimiser, the target
+    def update(self, f: FragmentBatch, p: Prepared) -> tuple[LossTerms, float]:
+        """The loss and its gradient (autograd, or the closed form where it is chosen), the
+        clipped Adam step, the soft target update and the KL coefficient's adaptation."""
+        cfg = self.config
         self.optimizer.zero_grad(set_to_none=True)
-        torch.autograd.backward((mean_t, values_t), (torch.from_numpy(terms.grad_mean),
-                                                     torch.from_numpy(terms.grad_values)))
-        self.model.policy.log_std.grad = torch.from_numpy(terms.grad_log_std)
+        if cfg.loss_impl == "autograd":
+            total, terms = loss.loss(cfg, self.kl_coef, f, p.targets, p.mean, p.log_std, p.values)
+            total.backward()
+        else:
+            grads, terms = closed_form.loss_and_gradients(
+                cfg, self.kl_coef, f, p.targets, p.mean.detach().numpy(),
+                p.log_std.detach().numpy(), p.values.detach().numpy(), p.logp)
+            torch.autograd.backward((p.mean, p.values), (torch.from_numpy(grads.mean),
+                                                         torch.from_numpy(grads.values)))
+            self.model.policy.log_std.grad = torch.from_numpy(grads.log_std)
         grad_norm = self._clip_gradients(cfg.max_grad_norm)
         self.optimizer.step()
-        if anchored:
+        if cfg.clip_anchor == "target":
             self._soft_update_target()
         self.updates += 1
         if cfg.kl_target > 0:
             self._adapt_kl_coef(terms.kl)
+        return terms, grad_norm
 
+    def _metrics(self, f: FragmentBatch, p: Prepared, terms: LossTerms,
+                 grad_norm: float) -> dict[str, float]:
+        cfg, vs = self.config, p.targets.vs
+        ratio = np.exp(terms.log_ratio)
         var_vs = sample_std(vs - mean_of(vs)) ** 2
-        residual = vs - values[:-1]
+        residual = vs - p.values.detach().numpy()[:-1]
         explained = (1.0 - sample_std(residual - mean_of(residual)) ** 2 / var_vs if var_vs > 0
                      else 0.0)
-        metrics = {
-            "losses/policy_loss": terms.pg_loss, "losses/value_loss": terms.value_loss,
+        log_is_bound = math.log(cfg.rho_target_bar)
+        return {
+            "losses/policy_loss": terms.policy, "losses/value_loss": terms.value,
             "losses/entropy": terms.entropy, "losses/kl_behaviour": terms.kl,
             "losses/kl_coef": self.kl_coef,
-            "losses/approx_kl": mean_of((terms.ratio - 1.0) - terms.log_ratio),
-            "losses/clipfrac": mean_of(np.abs(terms.ratio - 1.0) > cfg.clip_coef),
+            "losses/approx_kl": mean_of((ratio - 1.0) - terms.log_ratio),
+            "losses/clipfrac": mean_of(np.abs(ratio - 1.0) > cfg.clip_coef),
             "losses/explained_variance": explained, "losses/grad_norm": grad_norm,
-            "losses/target_is_clipfrac": mean_of(b_logp - t_logp >= math.log(cfg.rho_target_bar))
-            if anchored else 0.0,
+            "losses/target_is_clipfrac": mean_of(f.behaviour_logp - p.target_logp >= log_is_bound)
+            if cfg.clip_anchor == "target" else 0.0,
         }
-        td_abs = np.abs(rhos * deltas)
-        return StepResult(metrics, *self._new_priorities(td_abs, rewards, discounts, keys,
-                                                         from_prioritized))
-
-    def _obs_affine(self) -> tuple[np.ndarray, np.ndarray]:
-        """The observation normaliser as float32 (mean, 1/std) (its current statistics)."""
-        rms = self.model.obs_rms
-        return (rms.mean.numpy().astype(np.float32),
-                inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon).astype(np.float32))
 
     def _new_priorities(self, td_abs, rewards, discounts, keys, from_prioritized):
         """Σ_t |ρ_t δ_t| (or per step) for the prioritized samples, on the current value net."""

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from tpdeb.tpdeb_core.replay import PRIORITY_MODES
 
 CLIP_ANCHORS = ("target", "behaviour")
+LOSS_IMPLS = ("autograd", "closed_form")
 
 
 @dataclass
@@ -72,6 +73,9 @@ class LossConfig(PriorityConfig):
     PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
     vtrace_lambda: float = 1.0
     """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
+    loss_impl: str = "closed_form"
+    """autograd: the loss as written (tpdeb_core/loss.py), differentiated by torch | closed_form:
+    the same loss with its gradient derived by hand (faster; the global log-std only)"""
 
     def __post_init__(self):
         super().__post_init__()
@@ -81,5 +85,7 @@ class LossConfig(PriorityConfig):
             raise ValueError(f"clip_anchor={self.clip_anchor!r}: use one of {CLIP_ANCHORS}")
         if not 0.0 <= self.vtrace_lambda <= 1.0:
             raise ValueError(f"vtrace_lambda={self.vtrace_lambda}: must be in [0, 1]")
+        if self.loss_impl not in LOSS_IMPLS:
+            raise ValueError(f"loss_impl={self.loss_impl!r}: use one of {LOSS_IMPLS}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate={self.learning_rate}: must be > 0")

@@ -14,18 +14,33 @@ import numpy as np
 import torch
 from torch import nn
 
+from tpdeb.tpdeb_core import policy
 from tpdeb.tpdeb_core.moments import NORM_EPSILON, batch_moments, inverse_std, merge_moments
-from tpdeb.tpdeb_core.numpy_policy import LOG_2PI, NumpyPolicy
+from tpdeb.tpdeb_core.policy import NumpyPolicy
 
-# --- diagonal Gaussian ---------------------------------------------------------------------------
+# --- the torch backend of the policy's definition ----------------------------------------------
+
+
+class TorchOps:
+    """torch: a layer is (W, b) for the fused `linear`."""
+
+    exp = staticmethod(torch.exp)
+    tanh = staticmethod(torch.tanh)
+    clip = staticmethod(torch.clamp)
+
+    @staticmethod
+    def linear(x, layer):
+        return torch.nn.functional.linear(x, *layer)
+
+
+TORCH = TorchOps()
 
 
 def gaussian_log_prob(
     mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor
 ) -> torch.Tensor:
     """log N(action; mean, exp(log_std)²), summed over the last (action) dimension."""
-    z = (action - mean) * torch.exp(-log_std)
-    return (-0.5 * z.pow(2) - log_std - 0.5 * LOG_2PI).sum(-1)
+    return policy.log_prob(mean, log_std, action, TORCH)
 
 
 def state_arrays(state: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
@@ -73,10 +88,6 @@ class RunningMeanStd(nn.Module):
     def moments(self) -> tuple[float, np.ndarray, np.ndarray]:
         return float(self.count.item()), self.mean.numpy().copy(), self.m2.numpy().copy()
 
-    def normalize(self, x: torch.Tensor, clip: float | None = None) -> torch.Tensor:
-        y = (x - self.mean.to(x.dtype)) / torch.sqrt(self.var.to(x.dtype) + self.epsilon)
-        return y.clamp(-clip, clip) if clip is not None else y
-
 
 # --- networks ------------------------------------------------------------------------------------
 
@@ -95,25 +106,51 @@ def mlp(sizes: Sequence[int], out_gain: float) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
-class GaussianPolicy(nn.Module):
-    """Mean from an MLP, state-independent learned log-std (DESIGN §2)."""
+def linear_layers(net: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
+    """A network's (weight, bias) pairs, held once: walking the module tree on every update
+    costs more than the arithmetic at these sizes."""
+    return [(m.weight, m.bias) for m in net if isinstance(m, nn.Linear)]
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], init_log_std: float):
+
+class GaussianPolicy(nn.Module):
+    """Mean from an MLP; the log-std a learned parameter (`policy_std="global"`) or a head on
+    the mean network's last hidden layer (`"state"`), as `tpdeb_core.policy.gaussian` reads
+    them."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: Sequence[int], init_log_std: float,
+                 policy_std: str = "global"):
         super().__init__()
+        if policy_std not in policy.POLICY_STDS:
+            raise ValueError(f"policy_std={policy_std!r}: use one of {policy.POLICY_STDS}")
         # Gain 0.01 starts every action near 0 with the full exploration of log_std.
         self.mean = mlp([obs_dim, *hidden, act_dim], out_gain=0.01)
-        self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
+        self.layers = linear_layers(self.mean)
+        self.policy_std = policy_std
+        if policy_std == "global":
+            self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
+        else:  # starts at init_log_std everywhere, and moves with the state as it learns
+            self.log_std_head = nn.Linear(hidden[-1], act_dim)
+            nn.init.orthogonal_(self.log_std_head.weight, 0.01)
+            nn.init.constant_(self.log_std_head.bias, float(init_log_std))
+
+    @property
+    def log_std_source(self):
+        """What `policy.gaussian` takes: the parameter, or the head's layer."""
+        if self.policy_std == "global":
+            return self.log_std
+        return (self.log_std_head.weight, self.log_std_head.bias)
 
     def forward(self, obs_norm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mean = self.mean(obs_norm)
-        return mean, self.log_std.expand_as(mean)
+        """(mean, log-std); the global log-std is [A] and broadcasts against the mean."""
+        return policy.gaussian(self.layers, self.log_std_source, obs_norm, TORCH)
 
 
 class ActorCritic(nn.Module):
     """Policy, value and both normalisers: everything an actor needs to act and to prioritise.
 
     `obs_rms` normalises observations; `ret_rms` tracks the discounted return whose std scales
-    rewards at learn time (rewards are stored raw and scaled with current statistics).
+    rewards at learn time (rewards are stored raw and scaled with current statistics). The
+    functions are `tpdeb_core.policy`'s on the torch backend; the module holds the parameters.
     """
 
     def __init__(
@@ -123,16 +160,26 @@ class ActorCritic(nn.Module):
         hidden: Sequence[int] = (64, 64),
         init_log_std: float = 0.0,
         obs_clip: float = 10.0,
+        policy_std: str = "global",
     ):
         super().__init__()
         self.obs_dim, self.act_dim, self.obs_clip = obs_dim, act_dim, obs_clip
-        self.policy = GaussianPolicy(obs_dim, act_dim, hidden, init_log_std)
+        self.policy = GaussianPolicy(obs_dim, act_dim, hidden, init_log_std, policy_std)
         self.value_net = mlp([obs_dim, *hidden, 1], out_gain=1.0)
+        self.value_layers = linear_layers(self.value_net)
         self.obs_rms = RunningMeanStd(obs_dim)
         self.ret_rms = RunningMeanStd(())
 
+    def obs_affine(self) -> tuple[np.ndarray, np.ndarray]:
+        """The observation normaliser's current (mean, 1/std) as float32 arrays."""
+        rms = self.obs_rms
+        return (rms.mean.numpy().astype(np.float32),
+                inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon).astype(np.float32))
+
     def norm_obs(self, obs_raw: torch.Tensor) -> torch.Tensor:
-        return self.obs_rms.normalize(obs_raw, self.obs_clip).to(torch.float32)
+        mean, inv_std = (torch.from_numpy(x) for x in self.obs_affine())
+        return policy.normalize(torch.as_tensor(obs_raw, dtype=torch.float32), mean, inv_std,
+                                self.obs_clip, TORCH)
 
     def reward_scale(self) -> float:
         """Multiplier for raw rewards: 1 / std of the discounted return."""
@@ -140,31 +187,26 @@ class ActorCritic(nn.Module):
         return float(inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon))
 
     def value(self, obs_norm: torch.Tensor) -> torch.Tensor:
-        return self.value_net(obs_norm).squeeze(-1)
+        return policy.mlp(self.value_layers, obs_norm, TORCH).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs_raw: np.ndarray, generator: torch.Generator | None = None) -> dict:
         """Sample raw Gaussian actions for a batch of raw observations (numpy in, numpy out)."""
-        obs = self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))
+        obs = self.norm_obs(obs_raw)
         mean, log_std = self.policy(obs)
-        noise = torch.randn(mean.shape, generator=generator)
-        action = mean + noise * torch.exp(log_std)
-        return {
-            "action": action.numpy(),
-            "mean": mean.numpy(),
-            "log_std": log_std.numpy(),
-            "logp": gaussian_log_prob(mean, log_std, action).numpy(),
-            "value": self.value(obs).numpy(),
-        }
+        action, logp = policy.sample(mean, log_std, torch.randn(mean.shape, generator=generator),
+                                     TORCH)
+        return {"action": action.numpy(), "mean": mean.numpy(),
+                "log_std": log_std.detach().expand_as(mean).numpy(), "logp": logp.numpy(),
+                "value": self.value(obs).numpy()}
 
     @torch.no_grad()
     def act_deterministic(self, obs_raw: np.ndarray) -> np.ndarray:
-        mean, _ = self.policy(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32)))
-        return mean.numpy()
+        return self.policy(self.norm_obs(obs_raw))[0].numpy()
 
     @torch.no_grad()
     def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
-        return self.value(self.norm_obs(torch.as_tensor(obs_raw, dtype=torch.float32))).numpy()
+        return self.value(self.norm_obs(obs_raw)).numpy()
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The state (parameters and normalisers) as numpy arrays, by state_dict name."""

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from tpdeb.services.config import ConfigError
 from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
+from tpdeb.tpdeb_core.policy import POLICY_STDS
 from tpdeb.tpdeb_core.rate_limiter import RateLimiter
 from tpdeb.tpdeb_core.replay import RETENTIONS, DualReplay
 
@@ -100,11 +101,16 @@ class ModelSettings:
     """initial log standard deviation of the Gaussian policy"""
     obs_clip: float = 10.0
     """clip normalised observations to ±this"""
+    policy_std: str = "global"
+    """global: one learned log-std per action dimension | state: a log-std head on the policy's
+    last hidden layer, bounded to [-5, 2] (needs loss_impl=autograd)"""
 
     def __post_init__(self):
         chain_post_init(ModelSettings, self)
         self.hidden_sizes = tuple(self.hidden_sizes)
         check(self, [
+            (self.policy_std in POLICY_STDS, "policy_std",
+             f"must be one of {', '.join(POLICY_STDS)}"),
             (self.fragment_len >= 2, "fragment_len", "must be ≥ 2"),
             (len(self.hidden_sizes) >= 1 and min(self.hidden_sizes) >= 1, "hidden_sizes",
              "needs at least one positive layer size"),
@@ -237,6 +243,14 @@ class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig)
 class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
     """What the learner trains by: the replay's settings (it asks for the batches), its own and
     the loss's."""
+
+    def __post_init__(self):
+        chain_post_init(LearningConfig, self)
+        check(self, [
+            (self.loss_impl != "closed_form" or self.policy_std == "global", "loss_impl",
+             f"closed_form implements the global log-std only, not policy_std={self.policy_std}: "
+             "set loss_impl=autograd"),
+        ])
 
     def loss_config(self) -> LossConfig:
         names = {f.name for f in dataclasses.fields(LossConfig)}

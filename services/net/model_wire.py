@@ -14,7 +14,7 @@ FLOAT16_MAX = float(np.finfo(np.float16).max)
 
 def model_for(spec: RunSpec) -> ActorCritic:
     return ActorCritic(spec.obs_dim, spec.act_dim, tuple(spec.hidden_sizes), spec.init_log_std,
-                       spec.obs_clip)
+                       spec.obs_clip, spec.policy_std)
 
 
 def params_message(arrays: dict[str, np.ndarray], version: int,

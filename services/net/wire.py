@@ -1,4 +1,5 @@
-"""Between the core's objects and the wire's messages: fragments, parameters, the run spec.
+"""Between the core's objects and the wire's messages: parameters and the run spec. (Fragments
+and batches need nothing here: the wire's Trajectory and Batch are the core's classes.)
 
 Torch-free: actors and the replay server import it. The torch model's side of the parameter
 message (the model for a spec, a message of its state) is in services/net/model_wire.py.
@@ -6,26 +7,22 @@ message (the model for a spec, a message of its state) is in services/net/model_
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
-from tpdeb.protocol import Batch, DecodeError, Params, RunSpec, Trajectory
+from tpdeb.protocol import DecodeError, Params, RunSpec
 from tpdeb.protocol.codec import check_params_shapes
 from tpdeb.services.config.train import SamplingConfig
-from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch
-from tpdeb.tpdeb_core.numpy_policy import NumpyPolicy, param_shapes
-
-_FRAGMENT_FIELDS = [f.name for f in dataclasses.fields(Fragment)]
-_BATCH_FIELDS = [f.name for f in dataclasses.fields(FragmentBatch)]
+from tpdeb.tpdeb_core.policy import NumpyPolicy, param_shapes
 
 
 def run_spec(config: SamplingConfig, obs_dim: int, act_dim: int, low, high) -> RunSpec:
     return RunSpec(
         env_id=config.env_id, obs_dim=obs_dim, act_dim=act_dim, fragment_len=config.fragment_len,
         hidden_sizes=list(config.hidden_sizes), gamma=config.gamma, obs_clip=config.obs_clip,
-        init_log_std=config.init_log_std, priority_mode=config.priority_mode,
+        init_log_std=config.init_log_std, policy_std=config.policy_std,
+        priority_mode=config.priority_mode,
         priority_kappa=config.priority_kappa, action_low=np.asarray(low, np.float32),
         action_high=np.asarray(high, np.float32))
 
@@ -41,31 +38,8 @@ def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int) -> s
     return None
 
 
-def _fields(source, names: list[str]) -> dict:
-    """The core object's fields and the message's carry the same names: copy them across."""
-    return {name: getattr(source, name) for name in names}
-
-
-def fragment_to_message(fragment: Fragment, reward_scale: float,
-                        incarnation: int = 0) -> Trajectory:
-    return Trajectory(reward_scale=float(reward_scale), incarnation=int(incarnation),
-                      **_fields(fragment, _FRAGMENT_FIELDS))
-
-
-def message_to_fragment(message: Trajectory) -> Fragment:
-    return Fragment(**_fields(message, _FRAGMENT_FIELDS))
-
-
-def batch_message(batch: FragmentBatch) -> Batch:
-    return Batch(**_fields(batch, _BATCH_FIELDS))
-
-
-def batch_of(message: Batch) -> FragmentBatch:
-    return FragmentBatch(**_fields(message, _BATCH_FIELDS))
-
-
 def expected_shapes(spec: RunSpec) -> dict[str, tuple[int, ...]]:
-    return param_shapes(spec.obs_dim, spec.act_dim, spec.hidden_sizes)
+    return param_shapes(spec.obs_dim, spec.act_dim, spec.hidden_sizes, spec.policy_std)
 
 
 def check_params(message: Params, shapes: dict[str, tuple[int, ...]]) -> None:

@@ -28,6 +28,7 @@ import torch
 
 from tpdeb.services.config import ConfigError
 from tpdeb.services.store.persistence import fsync_dir
+from tpdeb.tpdeb_core.policy import policy_std_of
 
 PERIODIC, FINAL = "ckpt", "final"
 _NAME = re.compile(r"(ckpt|final)_(\d+)_(\d+)\.pt")
@@ -75,7 +76,7 @@ def load(path: str | Path) -> dict:
 def spec_fields(spec) -> dict:
     """What a checkpoint records of the run spec, to refuse resuming into another env."""
     return {"env_id": spec.env_id, "obs_dim": int(spec.obs_dim), "act_dim": int(spec.act_dim),
-            "hidden_sizes": [int(h) for h in spec.hidden_sizes]}
+            "hidden_sizes": [int(h) for h in spec.hidden_sizes], "policy_std": spec.policy_std}
 
 
 def save_training(run_dir: str | Path, learner, config, global_step: int, tag: str,
@@ -188,6 +189,11 @@ def spec_problem(state: dict, spec) -> str | None:
     if saved.get("hidden_sizes") not in (None, here["hidden_sizes"]):
         return (f"its networks have hidden sizes {saved['hidden_sizes']}; this run's have "
                 f"{here['hidden_sizes']} (--hidden-sizes)")
+    # checkpoints from before the setting hold a global log-std: their weights say which
+    saved_std = saved.get("policy_std") or policy_std_of(state.get("model") or {})
+    if saved_std != here["policy_std"]:
+        return (f"its policy has a {saved_std} log-std; this run's has a {here['policy_std']} "
+                f"one (--policy-std {saved_std} to continue it)")
     return None
 
 
