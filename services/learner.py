@@ -85,7 +85,7 @@ class LearnerService:
         try:  # the run spec's model against this learner's loss settings
             self.learner = Learner(self.model, config.loss_config())
         except ValueError as exc:
-            raise ConfigError(f"the run's policy_std={spec.policy_std}: {exc}") from None
+            raise ConfigError(str(exc)) from None
         self.run_dir = config.default_run_dir()
         self.global_step = 0
         restored_version = -1

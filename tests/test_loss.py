@@ -2,6 +2,7 @@
 loss term and every parameter gradient, over each configuration the fast path accepts."""
 
 import copy
+import dataclasses
 import itertools
 
 import numpy as np
@@ -95,4 +96,17 @@ def test_the_closed_form_refuses_what_it_does_not_implement():
     Learner(copy.deepcopy(model), LossConfig(loss_impl="autograd"))  # the definition takes it
     with pytest.raises(ValueError, match="loss_impl='fast'"):
         LossConfig(loss_impl="fast")
-    closed_form.check_supported("global")
+    closed_form.check_supported(LossConfig(), "global")
+
+
+@dataclasses.dataclass
+class WithValueClip(LossConfig):
+    value_clip: float = 0.0  # a loss setting the closed form has not been taught
+
+
+def test_a_loss_setting_the_closed_form_was_not_taught_is_refused_unless_at_its_default():
+    closed_form.check_supported(WithValueClip(), "global")  # off: the same loss
+    with pytest.raises(ValueError, match="does not implement value_clip=0.2: set "
+                                         "loss_impl=autograd"):
+        Learner(ActorCritic(OBS, ACT), WithValueClip(value_clip=0.2))
+    assert {f.name for f in dataclasses.fields(LossConfig)} >= closed_form.IMPLEMENTED

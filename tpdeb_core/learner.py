@@ -50,7 +50,7 @@ class Learner:
 
     def __init__(self, model: ActorCritic, config: LossConfig):
         if config.loss_impl == "closed_form":
-            closed_form.check_supported(model.policy.policy_std)
+            closed_form.check_supported(config, model.policy.policy_std)
         self.model = model
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
