@@ -285,19 +285,22 @@ class StepSampler(_ProportionalSampler):
 
     def draw_steps(self, count: int, beta: float, rng: np.random.Generator):
         """`count` single transitions: the tree picks a fragment ∝ Σ_t p_t^α, then a step ∝
-        p_t^α in it (O(T) each); returns (slots, steps, importance weights) per draw."""
+        p_t^α in it (O(T) each, for all draws at once: the drawn fragments' step masses side by
+        side, zero-padded, and one cumulative sum); returns (slots, steps, importance weights)
+        per draw."""
         slots = self._stratified(count, rng)
-        step_index = np.empty(count, dtype=np.int64)
-        step_mass = np.empty(count, dtype=np.float64)
         within = rng.random(count)
-        for j, slot in enumerate(slots.tolist()):
-            masses = self._step_masses[slot]
-            cumulative = np.cumsum(masses)
-            step = int(np.searchsorted(cumulative, within[j] * cumulative[-1], side="right"))
-            step = min(step, masses.size - 1)  # rounding at the top end
-            step_index[j] = step
-            step_mass[j] = masses[step]
-        return slots, step_index, (step_mass / self._min_step_mass.min()) ** (-beta)
+        distinct, rows = np.unique(slots, return_inverse=True)
+        sizes = np.array([self._step_masses[slot].size for slot in distinct.tolist()])
+        masses = np.zeros((distinct.size, int(sizes.max())))
+        for row, slot in enumerate(distinct.tolist()):
+            masses[row, :sizes[row]] = self._step_masses[slot]
+        cumulative = np.cumsum(masses, axis=1)[rows]  # [count, width]; padding adds nothing
+        targets = within * cumulative[:, -1]
+        # the first step whose cumulative mass passes the target (searchsorted, side "right")
+        steps = np.minimum((cumulative <= targets[:, None]).sum(axis=1), sizes[rows] - 1)
+        step_mass = masses[rows, steps]
+        return slots, steps.astype(np.int64), (step_mass / self._min_step_mass.min()) ** (-beta)
 
     def state(self, slots: np.ndarray) -> dict[str, Any]:
         return {**super().state(slots),
