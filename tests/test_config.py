@@ -192,3 +192,9 @@ def test_a_password_comes_from_a_secret_file_and_no_copy_of_the_config_keeps_it(
         NetConfig(user="actor-0", password_file=str(secret))
     with pytest.raises(ConfigError, match="cannot read it"):
         NetConfig(user="actor-0", password_file=str(tmp_path / "missing"))
+
+
+def test_a_closed_form_loss_with_a_state_dependent_std_is_refused_at_start_naming_what_to_do():
+    with pytest.raises(ConfigError, match="policy_std='state': set loss_impl=autograd"):
+        TrainConfig(policy_std="state")
+    assert TrainConfig(policy_std="state", loss_impl="autograd").policy_std == "state"

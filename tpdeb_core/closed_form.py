@@ -11,34 +11,13 @@ ops and their backward nodes cost more than the few numpy expressions that repla
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
 from tpdeb.tpdeb_core.loss import LossTerms, Targets
 from tpdeb.tpdeb_core.loss_config import LossConfig
 from tpdeb.tpdeb_core.policy import LOG_2PI
-
-# The loss settings whose every value the closed form implements. A setting added to the loss
-# (value clipping, return normalisation, …) is refused here at any value but its default until
-# its gradient is derived below and tests/test_loss.py crosses it with the rest.
-IMPLEMENTED = frozenset({
-    "gamma", "priority_mode", "priority_kappa", "rho_bar", "c_bar", "rho_pg_bar",
-    "rho_target_bar", "clip_coef", "kl_coef", "kl_target", "vf_coef", "ent_coef",
-    "max_grad_norm", "tau", "learning_rate", "adam_eps", "norm_adv", "clip_anchor",
-    "vtrace_lambda", "loss_impl"})
-
-
-def check_supported(config: LossConfig, policy_std: str) -> None:
-    """Refuse what the closed form does not implement, naming the setting."""
-    if policy_std != "global":
-        raise ValueError(f"loss_impl=closed_form implements the global log-std only, not "
-                         f"policy_std={policy_std!r}: set loss_impl=autograd")
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if f.name not in IMPLEMENTED and value != f.default:
-            raise ValueError(f"loss_impl=closed_form does not implement {f.name}={value!r}: "
-                             "set loss_impl=autograd")
 
 
 @dataclass

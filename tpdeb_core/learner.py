@@ -19,7 +19,7 @@ from tpdeb.tpdeb_core import closed_form, loss, policy
 from tpdeb.tpdeb_core.adam import Adam
 from tpdeb.tpdeb_core.fragments import Fragment, FragmentBatch, fragment_priority
 from tpdeb.tpdeb_core.loss import LossTerms, Targets, mean_of, sample_std
-from tpdeb.tpdeb_core.loss_config import LossConfig
+from tpdeb.tpdeb_core.loss_config import LossConfig, closed_form_refusal
 from tpdeb.tpdeb_core.model import ActorCritic
 from tpdeb.tpdeb_core.policy import NUMPY
 
@@ -49,8 +49,10 @@ class Learner:
     """Owns the model, the target policy and the optimiser; `step` is one gradient update."""
 
     def __init__(self, model: ActorCritic, config: LossConfig):
-        if config.loss_impl == "closed_form":
-            closed_form.check_supported(config, model.policy.policy_std)
+        refusal = (closed_form_refusal(config, model.policy.policy_std)
+                   if config.loss_impl == "closed_form" else None)
+        if refusal:
+            raise ValueError(refusal)
         self.model = model
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)

@@ -36,13 +36,6 @@ class TorchOps:
 TORCH = TorchOps()
 
 
-def gaussian_log_prob(
-    mean: torch.Tensor, log_std: torch.Tensor, action: torch.Tensor
-) -> torch.Tensor:
-    """log N(action; mean, exp(log_std)²), summed over the last (action) dimension."""
-    return policy.log_prob(mean, log_std, action, TORCH)
-
-
 def state_arrays(state: dict[str, torch.Tensor]) -> dict[str, np.ndarray]:
     """A state dict as numpy arrays (views of the tensors: copy before they change)."""
     return {k: v.detach().cpu().numpy() for k, v in state.items()}

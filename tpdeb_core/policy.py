@@ -29,7 +29,6 @@ LOG_STD, LOG_STD_HEAD = "policy.log_std", "policy.log_std_head"
 # far by one batch cannot make a Gaussian that is a point or spans the whole action space.
 POLICY_STDS = ("global", "state")
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
-NORMALISERS = {"obs_rms": "obs", "ret_rms": ()}
 
 
 def param_shapes(obs_dim: int, act_dim: int, hidden: Sequence[int],

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError
-from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
+from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig, closed_form_refusal
 from tpdeb.tpdeb_core.policy import POLICY_STDS
 from tpdeb.tpdeb_core.rate_limiter import RateLimiter
 from tpdeb.tpdeb_core.replay import RETENTIONS, DualReplay
@@ -246,11 +246,10 @@ class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
 
     def __post_init__(self):
         chain_post_init(LearningConfig, self)
-        check(self, [
-            (self.loss_impl != "closed_form" or self.policy_std == "global", "loss_impl",
-             f"closed_form implements the global log-std only, not policy_std={self.policy_std}: "
-             "set loss_impl=autograd"),
-        ])
+        if self.loss_impl == "closed_form":  # the learner's own rule, refused at start
+            refusal = closed_form_refusal(self.loss_config(), self.policy_std)
+            if refusal:
+                raise ConfigError(refusal)
 
     def loss_config(self) -> LossConfig:
         names = {f.name for f in dataclasses.fields(LossConfig)}
