@@ -25,6 +25,7 @@ from pathlib import Path
 import zenoh
 
 from tpdeb.protocol import Control, DecodeError, Keys, decode
+from tpdeb.services.budget import Budget
 from tpdeb.services.config import ConfigError, resolve, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import SERVICE_CONFIGS
@@ -152,8 +153,9 @@ class Cluster:
         except ConfigError as exc:
             say(f"[{PROG}] error: {exc}")
             return 2
-        say(f"[{PROG}] run {self.plan.run_id}: {self.plan.train.env_id}, "
-            f"{self.plan.train.total_timesteps:,} steps, seed {self.plan.train.seed}; "
+        train = self.plan.train
+        limits = Budget(train.total_timesteps, train.train_for_seconds).describe()
+        say(f"[{PROG}] run {self.plan.run_id}: {train.env_id}, {limits}, seed {train.seed}; "
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
         say(f"[{PROG}] algo {self.plan.train.algo}; preset: {shown(self.plan.train.preset)}")
         keys = Keys(self.plan.run_id)
@@ -367,6 +369,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--config", help=f"cluster file (default: {DEFAULT_FILE})")
     p.add_argument("--env-id", help="gymnasium environment id (overrides [train])")
     p.add_argument("--total-timesteps", type=int, help="env steps to train for")
+    p.add_argument("--train-for-seconds", type=float, metavar="S",
+                   help="seconds of training; with --total-timesteps, whichever binds first "
+                   "ends the run (0: no time limit)")
     p.add_argument("--seed", type=int, help="seed of every service, actor and env")
     p.add_argument("--num-envs", type=int, help="envs per actor")
     p.add_argument("--actors", type=int, help="number of actor processes")

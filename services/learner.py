@@ -3,8 +3,9 @@
 Several sample requests stay in flight (one fetch thread each) so a batch is usually waiting
 when an update ends. The loop: take a batch → merge the normaliser moments it carries → one
 `Learner.step` → send new priorities → publish parameters every `params_publish_interval`
-updates. Global steps are the replay's ingested env steps; at `total_timesteps` the learner
-writes its final checkpoint and tells every process of the run to stop.
+updates. Global steps are the replay's ingested env steps; at `total_timesteps`, or after
+`train_for_seconds` of training if that comes first (services/budget.py), the learner writes its
+final checkpoint and `end.json` and tells every process of the run to stop.
 
 Checkpoints (services/store/checkpoint.py): every `checkpoint_interval_s` the loop writes
 `checkpoints/ckpt_{updates}_{global_step}.pt` atomically and keeps the newest
@@ -21,6 +22,7 @@ collected with, so policy lag and sample age are measured in versions as well.
 
 from __future__ import annotations
 
+import json
 import logging
 import queue
 import sys
@@ -45,6 +47,7 @@ from tpdeb.protocol import (
     decode,
     encode,
 )
+from tpdeb.services.budget import Budget, clock
 from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import LearnerServiceConfig
@@ -64,6 +67,7 @@ from tpdeb.services.store.checkpoint import (
     save_training,
     set_aside,
     spec_problem,
+    write_atomic,
 )
 from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
 from tpdeb.tpdeb_core.learner import Learner
@@ -88,6 +92,9 @@ class LearnerService:
             raise ConfigError(str(exc)) from None
         self.run_dir = config.default_run_dir()
         self.global_step = 0
+        self.budget = Budget(config.total_timesteps, config.train_for_seconds)
+        self.spent_before = 0.0  # training seconds of the run before this process
+        self.ended_by: str | None = None
         restored_version = -1
         if resume is not None:
             restored_version = self.restore(*resume)
@@ -168,6 +175,7 @@ class LearnerService:
         if cfg.kl_target <= 0:
             self.learner.kl_coef = cfg.kl_coef
         self.global_step = int(state["global_step"])
+        self.spent_before = float(state.get("train_elapsed_s", 0.0))
         return int(state["version"])
 
     def param_version(self) -> int:
@@ -176,7 +184,7 @@ class LearnerService:
 
     def save_checkpoint(self, tag: str) -> Path:
         return save_training(self.run_dir, self.learner, self.config, self.global_step, tag,
-                             self.param_version(), self.spec)
+                             self.param_version(), self.spec, self.budget.elapsed())
 
     def periodic_checkpoint(self) -> Path | None:
         started = time.perf_counter()
@@ -262,7 +270,7 @@ class LearnerService:
 
     # -- batches in
     def beta(self) -> float:
-        progress = min(1.0, self.global_step / self.config.total_timesteps)
+        progress = self.budget.progress(self.global_step)
         return self.config.beta_start + (1.0 - self.config.beta_start) * progress
 
     def _fetch_loop(self, slot: int) -> None:
@@ -310,12 +318,13 @@ class LearnerService:
         self.publish_params(eager=True)  # actors starting up wait for the first version
         for fetcher in self.fetchers:
             fetcher.start()
-        log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {cfg.total_timesteps:,} "
-                  f"steps ({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
+        self.budget.restart_clock(self.spent_before)
+        log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {self.budget.describe()} "
+                  f"({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
         start = last_log = last_stats = last_checkpoint = time.monotonic()
         first_step = last_step = stats_step = self.global_step
         checkpointed_updates = self.learner.updates
-        while not self.stop and self.global_step < cfg.total_timesteps:
+        while not self.stop and not self.limit_reached():
             waited = time.perf_counter()
             try:
                 batch = self.batches.get(timeout=0.1)
@@ -339,7 +348,7 @@ class LearnerService:
                 if (self.learner.updates != checkpointed_updates
                         and self.periodic_checkpoint() is not None):
                     checkpointed_updates = self.learner.updates
-        finished = self.global_step >= cfg.total_timesteps
+        finished = self.limit_reached()
         elapsed = time.monotonic() - start
         self.log_progress((self.global_step - first_step) / max(elapsed, 1e-9))
         return finished
@@ -351,7 +360,7 @@ class LearnerService:
             if moments is not None:
                 rms.merge(moments.count, moments.mean, moments.m2)
         if cfg.anneal_lr:
-            progress = min(1.0, self.global_step / cfg.total_timesteps)
+            progress = self.budget.progress(self.global_step)
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
         fragments = batch.batch  # the FragmentBatch as decoded
         version = self.param_version()  # of the parameters this update starts from
@@ -423,6 +432,8 @@ class LearnerService:
                   "updates": self.learner.updates, "param_version": self.param_version(),
                   "param_version_lag": self.param_version_lag(),
                   "actors": len(self.actors_heard)}
+        if self.budget.time_left() is not None:
+            values["time_left_s"] = self.budget.time_left()
         self.stats_publisher.put(encode(Stats(
             role="learner", ident="0", values=finite_values(values),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
@@ -431,7 +442,8 @@ class LearnerService:
         values = {"charts/SPS": sps,
                   "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
                   "perf/updates": self.learner.updates,
-                  "perf/param_version": self.param_version()}
+                  "perf/param_version": self.param_version(),
+                  "perf/train_elapsed_s": self.budget.elapsed()}
         if self.count:
             values.update({k: v / self.count for k, v in self.sums.items()})
             values["perf/update_ms"] = 1e3 * self.update_s / self.count
@@ -456,7 +468,7 @@ class LearnerService:
         self.lag_sum, self.lag_count = 0.0, 0
         log.info(f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "
                   f"return {self.mean_return():9.1f} | updates {self.learner.updates:,} | "
-                  f"actors {len(self.actors_heard)}")
+                  f"actors {len(self.actors_heard)}{self.budget.shown()}")
 
     def delivery_totals(self) -> dict[str, float]:
         """Fragments sent / acknowledged / resent by the actors (their current process runs)
@@ -477,7 +489,8 @@ class LearnerService:
         # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
         path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
         if finished:
-            self.control_publisher.put(encode(Control(command="stop", reason="total_timesteps")))
+            self.write_end(path)
+            self.control_publisher.put(encode(Control(command="stop", reason=self.ended_by)))
         self.stop.set("finished")
         with self.params_lock:
             waiting, self.waiting_queries = self.waiting_queries, []
@@ -489,8 +502,27 @@ class LearnerService:
                 fetcher.join(timeout=self.config.request_timeout_s)
         self.metrics.close()
         self.token.undeclare()
-        log.info(f"{'done' if finished else 'stopped'} at {self.global_step:,} steps, "
-                  f"{self.learner.updates:,} updates; checkpoint {path}")
+        log.info(f"{f'done ({self.ended_by})' if finished else 'stopped'} at "
+                  f"{self.global_step:,} steps, {self.learner.updates:,} updates, "
+                  f"{clock(self.budget.elapsed())} of training; checkpoint {path}")
+
+    def limit_reached(self) -> bool:
+        """Whether the run's steps or its time are used up (`ended_by` says which)."""
+        self.ended_by = self.ended_by or self.budget.reached(self.global_step)
+        return self.ended_by is not None
+
+    def write_end(self, checkpoint) -> None:
+        """`end.json` in the run dir: which limit ended the run, where and when."""
+        record = {"ended_by": self.ended_by, "global_step": self.global_step,
+                  "total_timesteps": self.config.total_timesteps,
+                  "train_for_seconds": self.config.train_for_seconds,
+                  "train_elapsed_s": round(self.budget.elapsed(), 3),
+                  "updates": self.learner.updates, "checkpoint": str(checkpoint)}
+        try:
+            write_atomic(self.run_dir / "end.json",
+                         lambda f: f.write(json.dumps(record, indent=1).encode()))
+        except OSError as exc:
+            log.warning(f"end.json not written ({exc})")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -42,7 +42,8 @@ log = logging.getLogger(PROG)
 
 
 class SerialRunner:
-    """The three services on one bus; `run()` trains to total_timesteps."""
+    """The three services on one bus; `run()` trains to total_timesteps (or for
+    train_for_seconds, whichever binds first)."""
 
     def __init__(self, config: TrainConfig):
         self.config = config
@@ -99,14 +100,15 @@ class SerialRunner:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.toml").write_text(to_toml(cfg))
         learner.metrics.text("hyperparameters", hyperparameter_table(cfg))
-        log.info(f"run dir {self.run_dir} | {cfg.env_id} | {cfg.total_timesteps:,} steps | seed "
+        learner.budget.restart_clock(learner.spent_before)
+        log.info(f"run dir {self.run_dir} | {cfg.env_id} | {learner.budget.describe()} | seed "
                  f"{cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)}")
         learner.publish_params(eager=True)
         self.actor.wait_for_params()
         start = last_log = time.perf_counter()
         last_step, interrupted = 0, False
         try:
-            while learner.global_step < cfg.total_timesteps:
+            while not learner.limit_reached():
                 if self.actor.outbox.wait_for_room(0.0):
                     self.act()
                 self.replay.poll(0.0)
@@ -132,7 +134,7 @@ class SerialRunner:
         learner.log_progress(learner.global_step / max(elapsed, 1e-9))
         summary = {"global_step": learner.global_step, "mean_return": learner.mean_return(),
                    "updates": learner.learner.updates, "interrupted": interrupted,
-                   "elapsed_s": elapsed}
+                   "elapsed_s": elapsed, "ended_by": learner.ended_by}
         learner.finish(not interrupted)
         self.replay.close()
         self.actor.close()

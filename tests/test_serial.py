@@ -45,6 +45,7 @@ def test_short_run_writes_the_run_directory_and_is_reproducible(tmp_path):
                 "losses/value_loss", "losses/kl_behaviour", "replay/prioritized_items"):
         assert key in keys, key
     assert max(r["global_step"] for r in rows) == 4096
+    assert json.loads((tmp_path / "a" / "end.json").read_text())["ended_by"] == "total_timesteps"
     assert list((tmp_path / "a").glob("events.out.tfevents.*"))
     assert 'env_id = "InvertedPendulum-v5"' in (tmp_path / "a" / "config.toml").read_text()
     (checkpoint,) = (tmp_path / "a" / "checkpoints").glob("final_*_4096.pt")

@@ -7,6 +7,7 @@ the task presets in deploy/presets/ tune them). Flag names follow CleanRL where 
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -40,6 +41,9 @@ class RunSettings:
     """seed of torch, numpy and every environment (env i of actor a gets seed + 1000 a + i)"""
     total_timesteps: int = 1_000_000
     """environment steps to train for"""
+    train_for_seconds: float = 0.0
+    """seconds of training after which the run ends (0: no limit); with total_timesteps,
+    whichever binds first ends it, and schedules follow the one further along"""
     run_dir: str = ""
     """run directory; empty means runs/{env_id}__{exp_name}__{seed}__{unix time}"""
     log_interval_s: float = 5.0
@@ -49,6 +53,8 @@ class RunSettings:
         chain_post_init(RunSettings, self)
         check(self, [
             (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
+            (math.isfinite(self.train_for_seconds) and self.train_for_seconds >= 0,
+             "train_for_seconds", "must be a finite number ≥ 0 (0: no limit)"),
             (self.algo in ALGOS, "algo", f"must be one of {', '.join(ALGOS)}"),
         ])
 
@@ -167,7 +173,8 @@ class LearnerSettings:
     SECTION = "learner"
 
     anneal_lr: bool = False
-    """anneal the learning rate linearly to 0 over total_timesteps"""
+    """anneal the learning rate linearly to 0 over the run (its steps or its seconds,
+    whichever is further along)"""
     params_publish_interval: int = 1
     """learner updates between parameter publications to the actors"""
     params_dtype: str = "float32"

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import zenoh
 
 from tpdeb.protocol import DecodeError, Stats, decode
+from tpdeb.services.budget import clock
 from tpdeb.services.launcher import PROG
 
 STALE_INTERVALS = 3  # stats older than this many intervals mark a service stale
@@ -134,6 +135,8 @@ class Display:
                  (f"replay {fill[0]} fragments + {fill[1]:,} steps", 7),
                  (f"lag {learner.get('param_version_lag', math.nan):.1f} versions", 6),
                  (f"{int(learner.get('updates', 0)):,} updates", 5)]
+        if "time_left_s" in learner:
+            parts.insert(1, (f"{clock(learner['time_left_s'])} left", 0))
         if link:
             parts.append((f"link ↑{link.get('up_bytes_per_s', 0) / 1e3:,.0f} "
                           f"↓{link.get('down_bytes_per_s', 0) / 1e3:,.0f} kB/s", 4))

@@ -80,12 +80,13 @@ def spec_fields(spec) -> dict:
 
 
 def save_training(run_dir: str | Path, learner, config, global_step: int, tag: str,
-                  version: int | None = None, spec=None) -> Path:
+                  version: int | None = None, spec=None, train_elapsed_s: float = 0.0) -> Path:
     """The learner's full state as `{tag}_{updates}_{global_step}.pt` (train, env steps):
     model with its normalisers, target policy, optimiser, KL coefficient, update count, the
-    parameter version (default: the update count), global step, config and run spec."""
+    parameter version (default: the update count), global step, the seconds of training so far
+    (what a time limit counts), config and run spec."""
     state = {**learner.state_dict(), "config": dataclasses.asdict(config),
-             "global_step": int(global_step),
+             "global_step": int(global_step), "train_elapsed_s": float(train_elapsed_s),
              "version": int(learner.updates if version is None else version),
              "spec": spec_fields(spec) if spec is not None else None}
     name = f"{tag}_{learner.updates}_{int(global_step)}.pt"
