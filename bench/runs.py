@@ -22,9 +22,10 @@ DIAGNOSTICS = ("losses/clipfrac", "losses/kl_behaviour", "losses/approx_kl",
 
 
 def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[str],
-                log_path: Path, timeout_s: float) -> tuple[int, float]:
+                log_path: Path, timeout_s: float, env: dict | None = None) -> tuple[int, float]:
     """One cluster run to `steps` env steps; returns (exit code, wall seconds). The whole
-    process group is stopped on timeout or when this process is interrupted."""
+    process group is stopped on timeout or when this process is interrupted. `env`: variables
+    added to the cluster's environment (a service setting as TPDEB_*)."""
     cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id, "--total-timesteps",
            str(steps), "--seed", str(seed), "--run-dir", str(run_dir), "--set",
            "log_interval_s=10", *extra]
@@ -36,7 +37,7 @@ def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[s
     try:
         with log_path.open("w") as log:
             proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                    start_new_session=True)
+                                    start_new_session=True, env={**os.environ, **(env or {})})
             try:
                 code = proc.wait(timeout_s)
             except subprocess.TimeoutExpired:

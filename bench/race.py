@@ -1,0 +1,237 @@
+"""The race: the best policy each system gives in 15 minutes of wall-clock on this machine.
+
+    python bench/race.py                 # TPDEB: the six tasks × seeds 11-13, 15 minutes each
+    python bench/race.py --peers         # SB3 SAC and PPO, zoo hyperparameters, seed 11, on
+                                         # HalfCheetah, Hopper and Humanoid (needs '.[peers]')
+    python bench/race.py --report        # RESULTS' race table and docs/img/race/*.png
+    python bench/race.py --envs Hopper-v5 --seeds 1 --minutes 5 --tag race-tune/NAME \\
+        --set learning_rate=3e-4         # a tuning run of the race preset (seeds 1-3 only)
+
+Each TPDEB run is a `tpdeb-cluster` with `--train-for-seconds` (the learner's clock, which
+starts with its loop: actors starting and the replay filling count) and the task's race preset
+(`deploy/presets/race/{env}.toml`, where there is one; else its per-step preset), a periodic
+checkpoint every minute, all kept. Its training curve is put on the clock through the
+learner's progress rows (`perf/train_elapsed_s`, every 10 s); the checkpoint last written before
+each mark (5, 10 minutes; the final one for 15) is evaluated for 10 deterministic episodes. Each
+peer run is `bench/peers.py`. Nothing else may run on the machine meanwhile: these are timings.
+
+Resumable run by run: each finished run leaves docs/data/{tag}/{system}/{env}__{seed}.json
+(episodes as (seconds, steps, return), and per mark the steps, the training return — the mean of
+the episodes ending in the last 10 % of the time to the mark — and the evaluation); a run whose
+file exists is skipped. Run dirs and logs go to bench/out/ (not kept).
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import json
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from paper import TASKS, code_version, evaluate  # noqa: E402
+from runs import ROOT, read_run_metrics, run_cluster  # noqa: E402
+
+DATA = ROOT / "docs" / "data"
+OUT = ROOT / "bench" / "out"
+PRESETS = ROOT / "deploy" / "presets" / "race"
+REPORT_SEEDS = (11, 12, 13)
+PEER_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Humanoid-v5")
+PEERS = ("sb3-sac", "sb3-ppo")
+NEVER = 10**9  # total_timesteps of a race run: the clock is what ends it
+
+
+def result_path(tag: str, system: str, env_id: str, seed: int) -> Path:
+    return DATA / tag / system / f"{env_id}__{seed}.json"
+
+
+def save(path: Path, result: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result))
+    tmp.replace(path)
+
+
+def on_the_clock(rows: list[dict]) -> list[tuple[float, int, float]]:
+    """The run's episodes as (training seconds, steps, return): each episode's time is
+    interpolated between the learner's progress rows (steps, training seconds)."""
+    clock = sorted((r["global_step"], r["perf/train_elapsed_s"]) for r in rows
+                   if "perf/train_elapsed_s" in r)
+    if not clock:
+        return []
+    steps = [s for s, _ in clock]
+    out = []
+    for r in rows:
+        if "charts/episodic_return" not in r:
+            continue
+        step = r["global_step"]
+        i = bisect.bisect_left(steps, step)
+        if i == 0:
+            t = clock[0][1] * (step / steps[0] if steps[0] else 1.0)
+        elif i == len(steps):
+            t = clock[-1][1]
+        else:
+            (s0, t0), (s1, t1) = clock[i - 1], clock[i]
+            t = t0 + (t1 - t0) * ((step - s0) / (s1 - s0) if s1 > s0 else 1.0)
+        out.append((round(t, 2), int(step), round(float(r["charts/episodic_return"]), 2)))
+    return out
+
+
+def return_at(episodes: list, mark: float) -> float:
+    """Mean return of the episodes that ended in the last 10 % of the time to `mark`."""
+    tail = [r for t, _, r in episodes if 0.9 * mark < t <= mark]
+    if not tail:  # no episode ended in that window: the last ten before the mark
+        tail = [r for t, _, r in episodes if t <= mark][-10:]
+    return sum(tail) / len(tail) if tail else float("nan")
+
+
+def checkpoints_at(run_dir: Path, marks: list[float]) -> dict[float, tuple[Path, dict]]:
+    """For each mark, the checkpoint last written before it (the final one for the last mark),
+    with its training seconds and steps."""
+    from tpdeb.services.store.checkpoint import FINAL, checkpoint_dir, list_checkpoints, load
+
+    timed = []
+    for c in list_checkpoints(checkpoint_dir(run_dir)):
+        state = load(c.path)
+        timed.append((float(state.get("train_elapsed_s", 0.0)), c))
+    chosen = {}
+    for mark in marks:
+        if mark == marks[-1]:
+            pick = [(t, c) for t, c in timed if c.tag == FINAL]
+        else:
+            pick = [(t, c) for t, c in timed if t <= mark + 1.0 and c.tag != FINAL]
+        if pick:
+            t, c = max(pick, key=lambda tc: tc[0])
+            chosen[mark] = (c.path, {"t_s": round(t, 1), "steps": c.global_step})
+    return chosen
+
+
+def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
+    name = f"{env_id}__{seed}"
+    run_dir = OUT / args.tag / "tpdeb" / name
+    if run_dir.exists():  # a run cut short: start again from nothing
+        shutil.rmtree(run_dir)
+    budget = 60.0 * args.minutes
+    preset = PRESETS / f"{env_id}.toml"
+    extra = ["--train-for-seconds", str(budget)]
+    if preset.is_file():
+        extra += ["--set", f"preset={preset}"]
+    for item in args.set:
+        extra += ["--set", item]
+    print(f"[race] {time.strftime('%H:%M')} {args.tag}: tpdeb | {env_id} | seed {seed} | "
+          f"{args.minutes:g} min …", flush=True)
+    code, wall_s = run_cluster(env_id, NEVER, seed, run_dir, extra,
+                               OUT / args.tag / "tpdeb" / f"{name}.log", budget + 600,
+                               env={"TPDEB_KEEP_CHECKPOINTS": "1000",
+                                    "TPDEB_CHECKPOINT_INTERVAL_S": "60"})
+    end = run_dir / "end.json"
+    if code != 0 or not end.is_file():
+        print(f"[race]   exit code {code} after {wall_s:.0f} s (not recorded, will be rerun)",
+              flush=True)
+        return None
+    end = json.loads(end.read_text())
+    episodes = on_the_clock(read_run_metrics(run_dir))
+    marks = {}
+    for mark, (path, where) in checkpoints_at(run_dir, args_marks(args)).items():
+        marks[str(int(mark))] = {**where, "eval": evaluate(path, args.eval_episodes,
+                                                           10_000 + seed)}
+    return {"system": "tpdeb", "env_id": env_id, "seed": seed, "budget_s": budget,
+            "preset": str(preset.relative_to(ROOT)) if preset.is_file() else "task preset",
+            "overrides": list(args.set), "train_s": end["train_elapsed_s"],
+            "wall_s": round(wall_s, 1), "steps": end["global_step"], "episodes": episodes,
+            "marks": marks, "code": code_version()}
+
+
+def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
+    budget = 60.0 * args.minutes
+    path = result_path(args.tag, system, env_id, seed)
+    cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--algo", system.split("-")[1],
+           "--env-id", env_id, "--seed", str(seed), "--seconds", str(budget),
+           "--marks", *[str(m) for m in args_marks(args)], "--eval-episodes",
+           str(args.eval_episodes), "--out", str(path.with_suffix(".peer"))]
+    print(f"[race] {time.strftime('%H:%M')} {args.tag}: {system} | {env_id} | seed {seed} | "
+          f"{args.minutes:g} min …", flush=True)
+    log = OUT / args.tag / system / f"{env_id}__{seed}.log"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    with log.open("w") as out:
+        code = subprocess.run(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT).returncode
+    peer = path.with_suffix(".peer")
+    if code != 0 or not peer.is_file():
+        print(f"[race]   exit code {code}; see {log} (not recorded)", flush=True)
+        return None
+    result = json.loads(peer.read_text())
+    peer.unlink()
+    result["code"] = code_version()
+    return result
+
+
+def args_marks(args) -> list[float]:
+    """Every 5 minutes up to the budget, and the budget."""
+    budget = 60.0 * args.minutes
+    marks = [300.0 * k for k in range(1, int(budget // 300) + 1)]
+    return marks if marks and marks[-1] == budget else [*marks, budget]
+
+
+def finish(path: Path, result: dict | None) -> None:
+    if result is None:
+        return
+    for mark, at in result["marks"].items():
+        at["train_return"] = return_at([tuple(e) for e in result["episodes"]], float(mark))
+    save(path, result)
+    shown = " | ".join(f"{int(m) / 60:g} min: {at['train_return']:,.0f}"
+                       + (f" (eval {at['eval']['mean_return']:,.0f})" if at.get("eval") else "")
+                       for m, at in result["marks"].items())
+    print(f"[race]   → {shown} | {result['steps']:,} steps", flush=True)
+
+
+def peers_available() -> bool:
+    try:
+        import rl_zoo3  # noqa: F401
+        import stable_baselines3  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--envs", nargs="+")
+    parser.add_argument("--seeds", type=int, nargs="+")
+    parser.add_argument("--minutes", type=float, default=15.0)
+    parser.add_argument("--tag", default="race")
+    parser.add_argument("--peers", action="store_true",
+                        help="run the peers (SB3 SAC and PPO) instead of TPDEB")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="a training setting on top of the race preset (TPDEB runs)")
+    parser.add_argument("--eval-episodes", type=int, default=10)
+    parser.add_argument("--report", action="store_true",
+                        help="no runs: RESULTS' race table and the figures")
+    args = parser.parse_args()
+    if args.report:
+        from race_report import report
+
+        report(DATA / args.tag, args.envs or list(TASKS))
+        return
+    if args.peers and not peers_available():
+        sys.exit("race: the peers need the bench-only extra: .venv/bin/pip install -e '.[peers]'")
+    envs = args.envs or list(PEER_ENVS if args.peers else TASKS)
+    seeds = args.seeds or ([REPORT_SEEDS[0]] if args.peers else list(REPORT_SEEDS))
+    systems = PEERS if args.peers else ("tpdeb",)
+    jobs = [(system, env_id, seed) for seed in seeds for env_id in envs for system in systems]
+    todo = [j for j in jobs if not result_path(args.tag, *j).exists()]
+    print(f"[race] {args.tag}: {len(jobs)} runs of {args.minutes:g} minutes, "
+          f"{len(jobs) - len(todo)} already done; results in {DATA / args.tag}", flush=True)
+    for n, (system, env_id, seed) in enumerate(todo, 1):
+        print(f"[race] run {n}/{len(todo)}", flush=True)
+        result = (run_tpdeb(args, env_id, seed) if system == "tpdeb"
+                  else run_peer(args, system, env_id, seed))
+        finish(result_path(args.tag, system, env_id, seed), result)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,187 @@
+"""Tables and figures of the race from the finished runs in docs/data/{tag}/{system}/.
+
+Writes the part of docs/RESULTS.md between `<!-- race:begin -->` and `<!-- race:end -->` (for
+the reported tag, `race`) and one PNG per task of return against wall-clock minutes in
+docs/img/{tag}/. Called by `python bench/race.py --report`.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import numpy as np
+from paper_report import cell, replace_between, seeds  # noqa: I001  (bench/ is on sys.path)
+from runs import ROOT
+
+from tpdeb.services.plot import band, save, smooth
+
+# SAC's published returns at 1M env steps, the race's goal: CleanRL's SAC (training return, v4,
+# 3 seeds) where it reports the task, rl-baselines3-zoo's SAC model (evaluation, v3) elsewhere.
+SAC_1M = {"HalfCheetah-v5": (9635, "CleanRL"), "Hopper-v5": (2310, "CleanRL"),
+          "Walker2d-v5": (3591, "CleanRL"), "Ant-v5": (4616, "zoo"),
+          "Humanoid-v5": (4996, "CleanRL"), "Swimmer-v5": (346, "zoo")}
+SYSTEMS = {"tpdeb": "TPDEB", "sb3-sac": "SB3 SAC (zoo)", "sb3-ppo": "SB3 PPO (zoo)"}
+WINDOW = 20  # episodes in the smoothed curves
+GRID_S = 10.0
+BEGIN, END = "<!-- race:begin -->", "<!-- race:end -->"
+
+
+def load(directory: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(directory.glob("*/*.json"))]
+
+
+def curve(run: dict, budget: float) -> tuple[np.ndarray, np.ndarray]:
+    """The run's smoothed return on a grid of GRID_S seconds up to `budget` (NaN before its
+    first episode)."""
+    grid = np.arange(GRID_S, budget + 1e-9, GRID_S)
+    if not run["episodes"]:
+        return grid, np.full(grid.shape, np.nan)
+    t, _, r = np.array(run["episodes"], dtype=np.float64).T
+    order = np.argsort(t, kind="stable")
+    t, r = t[order], smooth(r[order], WINDOW)
+    idx = np.searchsorted(t, grid, side="right") - 1
+    values = np.where(idx >= 0, r[np.clip(idx, 0, None)], np.nan)
+    return grid, values
+
+
+def mean_curve(runs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    budget = min(r["budget_s"] for r in runs)
+    curves = [curve(r, budget) for r in runs]
+    values = np.array([v for _, v in curves])
+    return curves[0][0], np.nanmean(values, axis=0), np.nanstd(values, axis=0)
+
+
+def time_to(runs: list[dict], threshold: float) -> str:
+    """The time at which the runs' mean smoothed curve first reaches `threshold`."""
+    if not runs or threshold != threshold:
+        return "—"
+    grid, mean, _ = mean_curve(runs)
+    hit = np.flatnonzero(np.nan_to_num(mean, nan=-np.inf) >= threshold)
+    return f"{grid[hit[0]] / 60:.1f} min" if hit.size else f"not in {grid[-1] / 60:g} min"
+
+
+def at(runs: list[dict], mark: str, what: str) -> list[float]:
+    out = []
+    for r in runs:
+        entry = r["marks"].get(mark)
+        if entry is None:
+            continue
+        value = entry["train_return"] if what == "train" else (entry.get("eval") or {}).get(
+            "mean_return")
+        if value is not None and value == value:
+            out.append(value)
+    return out
+
+
+def final_mark(runs: list[dict]) -> str:
+    return str(int(min(r["budget_s"] for r in runs)))
+
+
+def budget_table(results: list[dict], envs: list[str]) -> str:
+    """Each system's return at the end of the budget, against SAC's 1M return."""
+    lines = ["| task | " + " | ".join(f"{name} training | {name} evaluation"
+                                        for name in SYSTEMS.values())
+             + " | SAC at 1M (source) | TPDEB training / SAC 1M |",
+             "|---|" + "---|---|" * len(SYSTEMS) + "---|---|"]
+    for env_id in envs:
+        row, ours = [env_id], []
+        for system in SYSTEMS:
+            runs = [r for r in results if r["env_id"] == env_id and r["system"] == system]
+            if not runs:
+                row += ["—", "—"]
+                continue
+            mark = final_mark(runs)
+            train = at(runs, mark, "train")
+            ours = train if system == "tpdeb" else ours
+            row += [cell(train), cell(at(runs, mark, "eval"))]
+        bar, source = SAC_1M[env_id]
+        ratio = f"{statistics.mean(ours) / bar:.2f}" if ours else "—"
+        row += [f"{bar:,} ({source})", ratio]
+        lines.append("| " + " | ".join(row) + " |")
+    return "\n".join(lines)
+
+
+def marks_table(results: list[dict], envs: list[str]) -> str:
+    """TPDEB's training (and evaluation) return at each mark, with its steps."""
+    runs_of = {e: [r for r in results if r["env_id"] == e and r["system"] == "tpdeb"]
+               for e in envs}
+    marks = sorted({m for runs in runs_of.values() for r in runs for m in r["marks"]}, key=float)
+    lines = ["| task | " + " | ".join(f"{float(m) / 60:g} min" for m in marks)
+             + " | env steps in the budget | startup and shutdown |",
+             "|---|" + "---|" * len(marks) + "---|---|"]
+    for env_id, runs in runs_of.items():
+        if not runs:
+            continue
+        cells = []
+        for m in marks:
+            train, ev = at(runs, m, "train"), at(runs, m, "eval")
+            cells.append(f"{statistics.mean(train):,.0f} (eval {statistics.mean(ev):,.0f})"
+                         if train and ev else "—")
+        steps = statistics.mean(r["steps"] for r in runs)
+        overhead = statistics.mean(r["wall_s"] - r["train_s"] for r in runs)
+        lines.append(f"| {env_id} ({seeds(len(runs))}) | " + " | ".join(cells)
+                     + f" | {steps / 1e6:.2f}M | {overhead:.0f} s |")
+    return "\n".join(lines)
+
+
+def reach_table(results: list[dict], envs: list[str]) -> str:
+    """How long each system needs to reach the other's end-of-budget training return."""
+    lines = ["| task | peer | peer's return at the end | TPDEB reaches it after | TPDEB's return "
+             "at the end | peer reaches it after |", "|---|---|---|---|---|---|"]
+    for env_id in envs:
+        ours = [r for r in results if r["env_id"] == env_id and r["system"] == "tpdeb"]
+        for system in SYSTEMS:
+            theirs = [r for r in results if r["env_id"] == env_id and r["system"] == system]
+            if system == "tpdeb" or not ours or not theirs:
+                continue
+            their_end = statistics.mean(at(theirs, final_mark(theirs), "train") or [np.nan])
+            our_end = statistics.mean(at(ours, final_mark(ours), "train") or [np.nan])
+            lines.append(f"| {env_id} | {SYSTEMS[system]} | {their_end:,.0f} | "
+                         f"{time_to(ours, their_end)} | {our_end:,.0f} | "
+                         f"{time_to(theirs, our_end)} |")
+    return "\n".join(lines)
+
+
+def figure(results: list[dict], env_id: str, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.4, 3.8))
+    for n, (system, name) in enumerate(SYSTEMS.items()):
+        runs = [r for r in results if r["env_id"] == env_id and r["system"] == system]
+        if runs:
+            grid, mean, std = mean_curve(runs)
+            band(ax, grid / 60, mean, std, f"C{n}", f"{name} ({seeds(len(runs))})")
+    bar, source = SAC_1M[env_id]
+    ax.axhline(bar, color="grey", lw=0.8, ls="--", label=f"SAC at 1M steps ({source})")
+    ax.set_title(env_id)
+    ax.set_xlabel("wall-clock minutes on two cores")
+    ax.set_ylabel("training return")
+    ax.legend(fontsize=7)
+    save(fig, path)
+
+
+def report(directory: Path, envs: list[str]) -> None:
+    results = load(directory)
+    if not results:
+        print(f"no finished runs in {directory}")
+        return
+    tag = directory.relative_to(ROOT / "docs" / "data")
+    present = [e for e in envs if any(r["env_id"] == e for r in results)]
+    text = "\n\n".join([
+        "Return after the budget on two cores (training: mean of the episodes ending in its "
+        "last 10 %; evaluation: the policy at the end, 10 deterministic episodes):",
+        budget_table(results, present), "TPDEB along the way:", marks_table(results, present),
+        "Time to reach the other's return (mean smoothed curve over seeds):",
+        reach_table(results, present)])
+    for env_id in present:
+        image = ROOT / "docs" / "img" / tag / f"{env_id}.png"
+        figure(results, env_id, image)
+        text += f"\n\n![{env_id}](img/{tag}/{env_id}.png)"
+    print(text)
+    if str(tag) == "race" and replace_between(ROOT / "docs" / "RESULTS.md", BEGIN, END, text):
+        print("\nupdated docs/RESULTS.md")

@@ -1,0 +1,96 @@
+"""The race bench's arithmetic: episodes put on the learner's clock, the training return at a
+mark, the checkpoint evaluated for each mark, the report's tables, and the peers' reading of the
+zoo's settings (literals only, never evaluated)."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import pytest
+
+from tests.procs import ROOT
+from tests.test_checkpoint import config_for, trained_learner
+from tpdeb.services.store import checkpoint as ckpt
+
+sys.path.insert(0, str(ROOT / "bench"))
+import peers  # noqa: E402
+import race  # noqa: E402
+import race_report  # noqa: E402
+
+
+def test_episodes_get_the_time_of_their_steps_between_progress_rows():
+    rows = [{"global_step": 0, "charts/episodic_return": 1.0},
+            {"global_step": 1000, "perf/train_elapsed_s": 10.0},
+            {"global_step": 1500, "charts/episodic_return": 2.0},
+            {"global_step": 3000, "perf/train_elapsed_s": 20.0},
+            {"global_step": 4000, "charts/episodic_return": 3.0}]
+    assert race.on_the_clock(rows) == [(0.0, 0, 1.0), (12.5, 1500, 2.0), (20.0, 4000, 3.0)]
+    assert race.on_the_clock([{"global_step": 5, "charts/episodic_return": 1.0}]) == []
+
+
+def test_the_return_at_a_mark_is_that_of_the_last_tenth_of_the_time():
+    episodes = [(10.0, 1, 5.0), (250.0, 2, 7.0), (280.0, 3, 100.0), (299.0, 4, 200.0),
+                (301.0, 5, 1e6)]
+    assert race.return_at(episodes, 300.0) == 150.0  # (270, 300]: not 250 s, not after 300 s
+    assert race.return_at(episodes, 100.0) == 5.0  # none in (90, 100]: the last before it
+    assert math.isnan(race.return_at([], 300.0))
+
+
+@pytest.mark.parametrize("minutes, marks", [(15, [300.0, 600.0, 900.0]), (0.5, [30.0]),
+                                            (12, [300.0, 600.0, 720.0])])
+def test_marks_every_five_minutes_and_the_budget(minutes, marks):
+    class Args:
+        pass
+
+    args = Args()
+    args.minutes = minutes
+    assert race.args_marks(args) == marks
+
+
+def test_each_mark_gets_the_checkpoint_written_last_before_it(tmp_path):
+    learner, _ = trained_learner(steps=1)
+    for tag, step, elapsed in [(ckpt.PERIODIC, 100, 61.0), (ckpt.PERIODIC, 200, 299.5),
+                               (ckpt.PERIODIC, 300, 360.0), (ckpt.FINAL, 400, 600.2)]:
+        learner.updates = step
+        ckpt.save_training(tmp_path, learner, config_for(tmp_path), step, tag,
+                           train_elapsed_s=elapsed)
+    chosen = race.checkpoints_at(tmp_path, [300.0, 600.0])
+    assert chosen[300.0][0].name == "ckpt_200_200.pt"
+    assert chosen[300.0][1] == {"t_s": 299.5, "steps": 200}
+    assert chosen[600.0][0].name == "final_400_400.pt"  # the end: the final checkpoint
+
+
+def run(system: str, env_id: str, seed: int, episodes, train_end: float, eval_end: float):
+    return {"system": system, "env_id": env_id, "seed": seed, "budget_s": 900.0,
+            "steps": 10**6, "wall_s": 910.0, "train_s": 900.0, "episodes": episodes,
+            "marks": {"900": {"train_return": train_end, "eval": {"mean_return": eval_end}}}}
+
+
+def test_the_report_compares_returns_at_the_end_and_the_time_to_reach_them():
+    ours = [run("tpdeb", "Hopper-v5", s, [(t, 0, t * 4.0) for t in range(1, 901)], 3400.0 + s,
+                3500.0) for s in (11, 12)]
+    theirs = [run("sb3-sac", "Hopper-v5", 11, [(t, 0, 1.0 * t) for t in range(1, 901)], 880.0,
+                  900.0)]
+    table = race_report.budget_table(ours + theirs, ["Hopper-v5"])
+    assert "3,412 ± 1 (n=2)" in table and "880 ± 0 (n=1)" in table
+    assert "2,310 (CleanRL)" in table and "| 1.48 |" in table
+    reach = race_report.reach_table(ours + theirs, ["Hopper-v5"])
+    # TPDEB's smoothed curve (a 20-episode trailing mean of 4·t) passes 880 near 230 s; SAC's
+    # (of t) never reaches 3,412 in 15 minutes
+    assert "| SB3 SAC (zoo) | 880 | 3.8 min | 3,412 | not in 15 min |" in reach
+
+
+def test_zoo_settings_are_read_as_literals_and_nothing_else():
+    import torch.nn as nn
+
+    text = "dict(log_std_init=-2, ortho_init=False, activation_fn=nn.ReLU, " \
+           "net_arch=dict(pi=[256, 256], vf=[256, 256]))"
+    assert peers.literal(text) == {"log_std_init": -2, "ortho_init": False,
+                                   "activation_fn": nn.ReLU,
+                                   "net_arch": {"pi": [256, 256], "vf": [256, 256]}}
+    for bad in ("__import__('os').system('true')", "dict(x=open('f'))", "nn.Module"):
+        with pytest.raises(ValueError, match="not a literal this bench reads"):
+            peers.literal(bad)
+    assert peers.schedule("lin_0.4")(0.5) == pytest.approx(0.2)
+    assert peers.schedule(3e-4) == 3e-4
