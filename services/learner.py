@@ -359,9 +359,7 @@ class LearnerService:
                              (self.model.ret_rms, batch.ret_moments)):
             if moments is not None:
                 rms.merge(moments.count, moments.mean, moments.m2)
-        if cfg.anneal_lr:
-            progress = self.budget.progress(self.global_step)
-            self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
+        self.follow_schedules()
         fragments = batch.batch  # the FragmentBatch as decoded
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
@@ -394,6 +392,16 @@ class LearnerService:
             self.trained_floor = max(self.trained_keys) - 2 * self.replay_items
             self.trained_keys = {k for k in self.trained_keys if k > self.trained_floor}
         self.count += 1
+
+    def follow_schedules(self) -> None:
+        """The learning rate and the log-std ceiling where they are annealed, at the run's
+        progress (the steps' or the seconds', whichever is further along)."""
+        cfg, progress = self.config, self.budget.progress(self.global_step)
+        if cfg.anneal_lr:
+            self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
+        if cfg.anneal_log_std:
+            self.learner.log_std_ceiling = (cfg.init_log_std
+                                            + (cfg.final_log_std - cfg.init_log_std) * progress)
 
     def drain_stats(self) -> None:
         while True:

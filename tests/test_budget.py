@@ -121,6 +121,21 @@ def test_serial_run_stops_on_time_with_its_checkpoint_and_anneals_over_the_time(
     assert rates[-1] < 0.3e-3, rates
 
 
+def test_the_log_std_ceiling_falls_with_the_run_and_needs_the_global_log_std(tmp_path):
+    service, _ = service_for(tmp_path, anneal_log_std=True, init_log_std=-0.5,
+                             final_log_std=-2.0, total_timesteps=1000, train_for_seconds=0.0)
+    try:
+        assert service.learner.log_std_ceiling is None  # until the first batch
+        service.global_step = 600
+        service.follow_schedules()
+        assert service.learner.log_std_ceiling == pytest.approx(-0.5 - 1.5 * 0.6)
+        assert service.learner.optimizer.param_groups[0]["lr"] == service.config.learning_rate
+    finally:
+        close(service)
+    with pytest.raises(ConfigError, match="anneal_log_std=true holds the global log-std"):
+        LearnerServiceConfig(anneal_log_std=True, policy_std="state", loss_impl="autograd")
+
+
 def test_cluster_stops_on_time_and_exits_0(procs, tmp_path):
     run_dir = tmp_path / "run"
     cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "100000000",

@@ -109,6 +109,20 @@ def test_adaptive_kl_coefficient_moves_toward_target():
     assert learner.kl_coef == pytest.approx(0.05)  # KL ≈ 0 < target/1.5: halved
 
 
+def test_a_log_std_ceiling_holds_the_global_log_std_after_every_step():
+    fragments, model = fragments_and_model()
+    learner = Learner(model, LossConfig(ent_coef=10.0))  # the loss pushes the log-std up
+    batch = (stack_fragments(fragments), np.arange(6), np.ones(6), np.zeros(6, bool))
+    learner.step(*batch)
+    assert float(model.policy.log_std.max()) > 0.0  # free, it rises above its start
+    learner.log_std_ceiling = -0.5
+    learner.step(*batch)
+    assert float(model.policy.log_std.max()) == pytest.approx(-0.5)
+    for _ in range(3):
+        learner.step(*batch)
+        assert float(model.policy.log_std.max()) <= -0.5
+
+
 def test_learner_state_round_trip():
     fragments, model = fragments_and_model()
     learner = Learner(model, LossConfig())

@@ -64,6 +64,9 @@ class Learner:
         self.optimizer = Adam(self.params, lr=config.learning_rate, eps=config.adam_eps)
         self.kl_coef = config.kl_coef
         self.updates = 0
+        # The global log-std is held at or below this after every step (None: free); the
+        # caller moves it along its schedule.
+        self.log_std_ceiling: float | None = None
 
     # -- normaliser statistics: merged once per *inserted* fragment, never per sample
     def observe(self, fragment: Fragment) -> None:
@@ -148,6 +151,9 @@ class Learner:
             self.model.policy.log_std.grad = torch.from_numpy(grads.log_std)
         grad_norm = self._clip_gradients(cfg.max_grad_norm)
         self.optimizer.step()
+        if self.log_std_ceiling is not None:
+            with torch.no_grad():
+                self.model.policy.log_std.clamp_(max=self.log_std_ceiling)
         if cfg.clip_anchor == "target":
             self._soft_update_target()
         self.updates += 1

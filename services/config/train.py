@@ -182,6 +182,11 @@ class LearnerSettings:
     statistics always travel in float64)"""
     torch_threads: int = 1
     """torch intra-op threads (1 leaves the other core to the environments)"""
+    anneal_log_std: bool = False
+    """hold the global log-std under a ceiling that falls linearly from init_log_std to
+    final_log_std over the run (less exploration noise late in training)"""
+    final_log_std: float = -2.0
+    """the ceiling of the log-std at the end of the run (with anneal_log_std)"""
 
     def __post_init__(self):
         chain_post_init(LearnerSettings, self)
@@ -253,6 +258,9 @@ class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
 
     def __post_init__(self):
         chain_post_init(LearningConfig, self)
+        if self.anneal_log_std and self.policy_std != "global":
+            raise ConfigError(f"anneal_log_std=true holds the global log-std, not "
+                              f"policy_std={self.policy_std!r}: set policy_std=global")
         if self.loss_impl == "closed_form":  # the learner's own rule, refused at start
             refusal = closed_form_refusal(self.loss_config(), self.policy_std)
             if refusal:
