@@ -510,8 +510,9 @@ class LearnerService:
                 fetcher.join(timeout=self.config.request_timeout_s)
         self.metrics.close()
         self.token.undeclare()
-        log.info(f"{f'done ({self.ended_by})' if finished else 'stopped'} at "
-                  f"{self.global_step:,} steps, {self.learner.updates:,} updates, "
+        log.info(f"{'done' if finished else 'stopped'} at {self.global_step:,} steps"
+                  f"{f' ({self.ended_by} reached)' if finished else ''}, "
+                  f"{self.learner.updates:,} updates, "
                   f"{clock(self.budget.elapsed())} of training; checkpoint {path}")
 
     def limit_reached(self) -> bool:

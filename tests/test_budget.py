@@ -108,7 +108,7 @@ def test_serial_run_stops_on_time_with_its_checkpoint_and_anneals_over_the_time(
     assert result.returncode == 0, result.stderr[-3000:]
     out = result.stdout + result.stderr
     assert "100,000,000 steps or 0:04 (4 s) of training, whichever comes first" in out
-    assert " left" in out and "done (train_for_seconds)" in out
+    assert " left" in out and "(train_for_seconds reached)" in out
     end = json.loads((run_dir / "end.json").read_text())
     assert end["ended_by"] == SECONDS and 0 < end["global_step"] < 100_000_000
     assert end["train_elapsed_s"] >= 4.0
