@@ -247,14 +247,19 @@ def tuning_table(directory: Path) -> str:
         r = json.loads(path.read_text())
         d = r.get("diagnostics", {})
         rows.append((r["env_id"], r["total_steps"], path.parent.name, r["seed"], r))
-    lines = ["| task | steps | variant | settings over the defaults | seed | training return | "
-             "entropy | clipfrac | KL(μ‖π) | policy lag | sample age |", "|---" * 11 + "|"]
+    lines = ["| task | steps | variant | settings | seed | training return | evaluation | "
+             "entropy | clipfrac | KL(μ‖π) | policy lag | sample age |", "|---" * 12 + "|"]
     for env_id, steps, name, seed, r in sorted(rows, key=lambda x: (x[0], x[1], x[2], x[3])):
         d = r.get("diagnostics", {})
-        settings = ", ".join(o for o in r.get("overrides", []) if o != "preset=none") or "—"
+        overrides = r.get("overrides", [])
+        base = "defaults" if "preset=none" in overrides else "preset"
+        settings = " + ".join([base, *(o for o in overrides if o != "preset=none")])
+        evaluation = (r.get("eval") or {}).get("mean_return")
         lines.append(
             f"| {env_id} | {steps / 1e3:,.0f}k | {name} | {settings} | {seed} | "
-            f"{r['final_return']:,.0f} | {d.get('losses/entropy', float('nan')):.1f} | "
+            f"{r['final_return']:,.0f} | "
+            f"{'—' if evaluation is None else f'{evaluation:,.0f}'} | "
+            f"{d.get('losses/entropy', float('nan')):.1f} | "
             f"{d.get('losses/clipfrac', float('nan')):.2f} | "
             f"{d.get('losses/kl_behaviour', float('nan')):.2f} | "
             f"{d.get('actor/param_version_lag', float('nan')):.0f} | "
