@@ -195,11 +195,17 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2,
                         help="torch threads (the machine's cores)")
     parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="change one of the zoo's settings (a diagnostic, not the race)")
     args = parser.parse_args()
     import torch
+    import yaml
 
     torch.set_num_threads(args.threads)
     key, hp = zoo_hyperparams(args.algo, args.env_id)
+    for item in args.set:
+        name, _, value = item.partition("=")
+        hp[name.strip()] = yaml.safe_load(value)
 
     def say(text: str) -> None:
         print(f"[peers] sb3-{args.algo} {args.env_id} seed {args.seed}: {text}", flush=True)
@@ -222,7 +228,7 @@ def main() -> None:
         say(f"at {snap['mark']:.0f} s: {snap['steps']:,} steps, evaluation "
             f"{marks[str(int(snap['mark']))]['eval']['mean_return']:,.1f}")
     result = {"system": f"sb3-{args.algo}", "env_id": args.env_id, "seed": args.seed,
-              "budget_s": args.seconds, "zoo_entry": key,
+              "budget_s": args.seconds, "zoo_entry": key, "changed": args.set,
               "hyperparams": {k: str(v) for k, v in hp.items()}, "threads": args.threads,
               "train_s": round(train_s, 1), "steps": int(model.num_timesteps),
               "episodes": callback.episodes, "marks": marks}
