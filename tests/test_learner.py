@@ -1,4 +1,5 @@
 import copy
+import dataclasses
 import math
 
 import numpy as np
@@ -121,6 +122,33 @@ def test_a_log_std_ceiling_holds_the_global_log_std_after_every_step():
     for _ in range(3):
         learner.step(*batch)
         assert float(model.policy.log_std.max()) <= -0.5
+
+
+@pytest.mark.parametrize("impl", ["closed_form", "autograd"])
+def test_under_a_ceiling_the_kl_term_reads_the_behaviour_std_under_it_too(impl):
+    fragments, model = fragments_and_model()  # behaviour log-std 0
+    batch = stack_fragments(fragments)
+    state = {k: v.clone() for k, v in model.state_dict().items()}
+    cfg = LossConfig(kl_coef=1.0, loss_impl=impl)
+    with torch.no_grad():  # π moved away from μ: narrower, and its means shifted
+        model.policy.log_std.fill_(-1.0)
+        model.policy.mean[-1].bias.add_(0.3)
+    ceiled = Learner(model, cfg)
+    ceiled.log_std_ceiling = -1.0
+    got = ceiled.step(batch, np.arange(6), np.ones(6), np.zeros(6, bool)).metrics
+    after = {k: v.clone() for k, v in model.state_dict().items()}
+    model.load_state_dict(state)
+    with torch.no_grad():  # π moved away from μ: narrower, and its means shifted
+        model.policy.log_std.fill_(-1.0)
+        model.policy.mean[-1].bias.add_(0.3)
+    narrow = dataclasses.replace(batch, behaviour_log_std=np.minimum(batch.behaviour_log_std,
+                                                                      np.float32(-1.0)))
+    plain = Learner(model, cfg).step(narrow, np.arange(6), np.ones(6), np.zeros(6, bool)).metrics
+    assert got["losses/kl_behaviour"] == pytest.approx(plain["losses/kl_behaviour"], rel=1e-6)
+    assert got["losses/kl_behaviour"] > 0  # the means differ, only the stds agree
+    for name in after:
+        if name != "policy.log_std":
+            torch.testing.assert_close(after[name], model.state_dict()[name])
 
 
 def test_learner_state_round_trip():

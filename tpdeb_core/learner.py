@@ -9,6 +9,7 @@ Where the fragments come from and where parameters go is the caller's business.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -64,8 +65,9 @@ class Learner:
         self.optimizer = Adam(self.params, lr=config.learning_rate, eps=config.adam_eps)
         self.kl_coef = config.kl_coef
         self.updates = 0
-        # The global log-std is held at or below this after every step (None: free); the
-        # caller moves it along its schedule.
+        # The global log-std is held at or below this after every step, and the behaviour
+        # policies' log-std is read under it in the KL term (None: free); the caller moves it
+        # along its schedule.
         self.log_std_ceiling: float | None = None
 
     # -- normaliser statistics: merged once per *inserted* fragment, never per sample
@@ -138,6 +140,11 @@ class Learner:
         """The loss and its gradient (autograd, or the closed form where it is chosen), the
         clipped Adam step, the soft target update and the KL coefficient's adaptation."""
         cfg = self.config
+        if self.log_std_ceiling is not None:
+            # The KL term sees μ's std under the same ceiling: the noise level is the
+            # schedule's, not pulled back up by wider behaviour policies from earlier on.
+            f = dataclasses.replace(f, behaviour_log_std=np.minimum(
+                f.behaviour_log_std, np.float32(self.log_std_ceiling)))
         self.optimizer.zero_grad(set_to_none=True)
         if cfg.loss_impl == "autograd":
             total, terms = loss.loss(cfg, self.kl_coef, f, p.targets, p.mean, p.log_std, p.values)

@@ -184,7 +184,8 @@ class LearnerSettings:
     """torch intra-op threads (1 leaves the other core to the environments)"""
     anneal_log_std: bool = False
     """hold the global log-std under a ceiling that falls linearly from init_log_std to
-    final_log_std over the run (less exploration noise late in training)"""
+    final_log_std over the run (less exploration noise late in training); the KL term reads
+    the behaviour policies' log-std under the same ceiling"""
     final_log_std: float = -2.0
     """the ceiling of the log-std at the end of the run (with anneal_log_std)"""
 
