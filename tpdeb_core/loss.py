@@ -27,7 +27,7 @@ class Targets:
 
     weights: np.ndarray  # w [T, B], Σ w = 1: E_w[ℓ] = Σ w·ℓ
     vs: np.ndarray  # V-trace value targets v_t
-    advantages: np.ndarray  # A_t, normalised per batch when norm_adv (centred or scaled only)
+    advantages: np.ndarray  # A_t, normalised per batch when norm_adv
     log_is: np.ndarray | float  # log is_t = log min(μ/π_θ̄, ρ̄_target); 0 when the clip is PPO's
     rhos: np.ndarray  # ρ_t = min(ρ̄, π_θ̄/μ)
     deltas: np.ndarray  # δ_t = r_t + γ_t V(s_{t+1}) − V(s_t), for the new priorities
@@ -67,8 +67,8 @@ def targets(cfg: LossConfig, w: np.ndarray, behaviour_logp: np.ndarray, target_l
         behaviour_logp, target_logp, rewards, values[:-1], values[-1], discounts, cfg.rho_bar,
         cfg.c_bar, cfg.rho_pg_bar, cfg.vtrace_lambda)
     if cfg.norm_adv:
-        centred = adv - mean_of(adv)
-        adv = (centred if cfg.norm_adv_center else adv) / (sample_std(centred) + 1e-8)
+        adv = adv - mean_of(adv)
+        adv /= sample_std(adv) + 1e-8
     log_is = (np.minimum(behaviour_logp - target_logp, math.log(cfg.rho_target_bar))
               if cfg.clip_anchor == "target" else 0.0)
     return Targets(w, vs, adv, log_is, rhos, deltas)

@@ -68,9 +68,6 @@ class LossConfig(PriorityConfig):
     """Adam epsilon"""
     norm_adv: bool = True
     """normalise advantages per batch"""
-    norm_adv_center: bool = True
-    """with norm_adv, subtract the batch mean before dividing by the batch std (false: divide
-    only; a batch is a few contiguous fragments, and centring it removes what they share)"""
     clip_anchor: str = "target"
     """target: the surrogate's ratio is taken to the target policy (IMPACT, TPDEB) | behaviour:
     PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
@@ -101,8 +98,8 @@ class LossConfig(PriorityConfig):
 CLOSED_FORM_SETTINGS = frozenset({
     "gamma", "priority_mode", "priority_kappa", "rho_bar", "c_bar", "rho_pg_bar",
     "rho_target_bar", "clip_coef", "kl_coef", "kl_target", "vf_coef", "ent_coef",
-    "max_grad_norm", "tau", "learning_rate", "adam_eps", "norm_adv", "norm_adv_center",
-    "clip_anchor", "vtrace_lambda", "loss_impl"})
+    "max_grad_norm", "tau", "learning_rate", "adam_eps", "norm_adv", "clip_anchor",
+    "vtrace_lambda", "loss_impl"})
 
 
 def closed_form_refusal(config: LossConfig, policy_std: str) -> str | None:
