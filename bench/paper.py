@@ -25,7 +25,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from runs import ROOT, read_run_metrics, run_cluster, summarize  # noqa: E402
+from runs import ROOT, read_run_metrics, run_cluster, save_json, summarize  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
 ALGOS = ("tpdeb", "impact", "ppo-per")
@@ -112,10 +112,7 @@ def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
                   sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result))
-    tmp.replace(path)
+    save_json(path, result)
     ev = result.get("eval") or {}
     print(f"[paper]   → training return {result['final_return']:,.0f}"
           + (f", evaluation {ev['mean_return']:,.0f} ± {ev['std_return']:,.0f}" if ev else "")

@@ -27,13 +27,15 @@ import argparse
 import ast
 import copy
 import importlib
-import json
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from runs import save_json  # noqa: E402
 
 ALGOS = ("sac", "ppo")
 # What the zoo's entries may name as an env wrapper (anything else is refused, not imported).
@@ -232,10 +234,7 @@ def main() -> None:
               "hyperparams": {k: str(v) for k, v in hp.items()}, "threads": args.threads,
               "train_s": round(train_s, 1), "steps": int(model.num_timesteps),
               "episodes": callback.episodes, "marks": marks}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result))
-    tmp.replace(args.out)
+    save_json(args.out, result)
 
 
 if __name__ == "__main__":

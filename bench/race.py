@@ -34,7 +34,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from paper import TASKS, code_version, evaluate  # noqa: E402
-from runs import ROOT, read_run_metrics, run_cluster  # noqa: E402
+from runs import ROOT, read_run_metrics, run_cluster, save_json  # noqa: E402
 
 DATA = ROOT / "docs" / "data"
 OUT = ROOT / "bench" / "out"
@@ -47,13 +47,6 @@ NEVER = 10**9  # total_timesteps of a race run: the clock is what ends it
 
 def result_path(tag: str, system: str, env_id: str, seed: int) -> Path:
     return DATA / tag / system / f"{env_id}__{seed}.json"
-
-
-def save(path: Path, result: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(result))
-    tmp.replace(path)
 
 
 def on_the_clock(rows: list[dict]) -> list[tuple[float, int, float]]:
@@ -181,7 +174,7 @@ def finish(path: Path, result: dict | None) -> None:
         return
     for mark, at in result["marks"].items():
         at["train_return"] = return_at([tuple(e) for e in result["episodes"]], float(mark))
-    save(path, result)
+    save_json(path, result)
     shown = " | ".join(f"{int(m) / 60:g} min: {at['train_return']:,.0f}"
                        + (f" (eval {at['eval']['mean_return']:,.0f})" if at.get("eval") else "")
                        for m, at in result["marks"].items())

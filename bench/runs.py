@@ -3,6 +3,7 @@ group, and reduce a run directory's metrics.jsonl to the protocol's figures."""
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import statistics
@@ -50,6 +51,15 @@ def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[s
     finally:
         signal.signal(signal.SIGTERM, previous)
     return code, time.monotonic() - start
+
+
+def save_json(path: Path, result: dict) -> None:
+    """Write a result file whole or not at all (a stopped bench leaves no half file that
+    would count as a finished run)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result))
+    tmp.replace(path)
 
 
 def _exit_on_sigterm(signum, frame):

@@ -38,9 +38,9 @@ class Budget:
     def __post_init__(self):
         self.started = self.now()
 
-    def restart_clock(self, spent_before: float = 0.0) -> None:
-        """Count from now, on top of `spent_before` seconds (a restored checkpoint's)."""
-        self.spent_before, self.started = float(spent_before), self.now()
+    def restart_clock(self) -> None:
+        """Count from now, on top of the `spent_before` seconds (a restored checkpoint's)."""
+        self.started = self.now()
 
     def elapsed(self) -> float:
         """Training seconds of the run so far."""

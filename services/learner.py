@@ -93,7 +93,6 @@ class LearnerService:
         self.run_dir = config.default_run_dir()
         self.global_step = 0
         self.budget = Budget(config.total_timesteps, config.train_for_seconds)
-        self.spent_before = 0.0  # training seconds of the run before this process
         self.ended_by: str | None = None
         restored_version = -1
         if resume is not None:
@@ -175,7 +174,7 @@ class LearnerService:
         if cfg.kl_target <= 0:
             self.learner.kl_coef = cfg.kl_coef
         self.global_step = int(state["global_step"])
-        self.spent_before = float(state.get("train_elapsed_s", 0.0))
+        self.budget.spent_before = float(state.get("train_elapsed_s", 0.0))
         return int(state["version"])
 
     def param_version(self) -> int:
@@ -318,7 +317,7 @@ class LearnerService:
         self.publish_params(eager=True)  # actors starting up wait for the first version
         for fetcher in self.fetchers:
             fetcher.start()
-        self.budget.restart_clock(self.spent_before)
+        self.budget.restart_clock()
         log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {self.budget.describe()} "
                   f"({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
         start = last_log = last_stats = last_checkpoint = time.monotonic()
@@ -440,8 +439,9 @@ class LearnerService:
                   "updates": self.learner.updates, "param_version": self.param_version(),
                   "param_version_lag": self.param_version_lag(),
                   "actors": len(self.actors_heard)}
-        if self.budget.time_left() is not None:
-            values["time_left_s"] = self.budget.time_left()
+        left = self.budget.time_left()
+        if left is not None:
+            values["time_left_s"] = left
         self.stats_publisher.put(encode(Stats(
             role="learner", ident="0", values=finite_values(values),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))

@@ -100,7 +100,7 @@ class SerialRunner:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.toml").write_text(to_toml(cfg))
         learner.metrics.text("hyperparameters", hyperparameter_table(cfg))
-        learner.budget.restart_clock(learner.spent_before)
+        learner.budget.restart_clock()
         log.info(f"run dir {self.run_dir} | {cfg.env_id} | {learner.budget.describe()} | seed "
                  f"{cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)}")
         learner.publish_params(eager=True)

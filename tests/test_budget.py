@@ -56,9 +56,9 @@ def test_without_a_time_limit_only_the_steps_count():
 
 def test_a_restarted_clock_goes_on_from_the_time_spent_before():
     now = FakeClock()
-    budget = Budget(10**6, 100.0, now=now)
+    budget = Budget(10**6, 100.0, spent_before=70.0, now=now)
     now.t += 500  # the learner waited before its loop: not training time
-    budget.restart_clock(spent_before=70.0)
+    budget.restart_clock()
     now.t += 20
     assert budget.elapsed() == pytest.approx(90.0) and budget.reached(0) is None
     now.t += 10
@@ -91,8 +91,8 @@ def test_the_training_time_is_checkpointed_and_a_restored_learner_goes_on_from_i
     assert ckpt.load(path)["train_elapsed_s"] == pytest.approx(42.0)
     resumed, _ = service_for(tmp_path, (path, ckpt.load(path)), train_for_seconds=100.0)
     try:
-        assert resumed.spent_before == pytest.approx(42.0)
-        resumed.budget.restart_clock(resumed.spent_before)  # what run() does
+        assert resumed.budget.spent_before == pytest.approx(42.0)
+        resumed.budget.restart_clock()  # what run() does
         assert 57.0 < resumed.budget.time_left() <= 58.0
         assert resumed.beta() > resumed.config.beta_start  # β follows the time already spent
     finally:
