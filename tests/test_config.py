@@ -53,6 +53,7 @@ def test_help_shows_field_docstrings(capsys):
     (["--uniform-capacity-steps", "10"], "uniform_capacity_steps=10"),
     (["--rate-error-buffer-steps", "5"], "replay ratio settings"),
     (["--learning-starts-fragments", "10000"], "replay ratio settings"),
+    (["--replay-ratio", "8", "--max-replay-ratio", "4"], "max_replay_ratio=4.0: must be 0"),
 ])
 def test_bad_settings_are_refused_with_the_value(argv, message):
     with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
@@ -199,3 +200,10 @@ def test_a_closed_form_loss_with_a_state_dependent_std_is_refused_at_start_namin
     with pytest.raises(ConfigError, match="policy_std='state': set loss_impl=autograd"):
         TrainConfig(policy_std="state")
     assert TrainConfig(policy_std="state", loss_impl="autograd").policy_std == "state"
+
+
+def test_a_replay_ratio_band_reaches_the_limiter():
+    fixed = parse([]).rate_limiter().stats()
+    assert fixed["max_samples_per_insert"] == fixed["samples_per_insert"] == 16.0
+    band = parse(["--max-replay-ratio", "48"]).rate_limiter().stats()
+    assert (band["samples_per_insert"], band["max_samples_per_insert"]) == (16.0, 48.0)

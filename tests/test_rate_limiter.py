@@ -76,6 +76,27 @@ def test_requests_larger_than_declared_are_refused():
         limiter.on_insert(0)
 
 
+def race(limiter, rng, insert_bias, insert_steps, sample_steps, iterations=20_000,
+         vary_sizes=False):
+    """Actors and learner at random relative speeds, `insert_bias` how often the actors win
+    when both may act; a refused side waits its turn. With `vary_sizes`, a fifth of the
+    requests are smaller than the declared maxima (a short final fragment, a smaller batch)."""
+    for _ in range(iterations):
+        insert_size, sample_size = insert_steps, sample_steps
+        if vary_sizes and rng.random() < 0.2:
+            insert_size = int(rng.integers(1, insert_steps + 1))
+        if vary_sizes and rng.random() < 0.2:
+            sample_size = int(rng.integers(1, sample_steps + 1))
+        may_insert = limiter.can_insert(insert_size)
+        may_sample = limiter.can_sample(sample_size)
+        assert may_insert or may_sample, f"deadlock at {limiter.stats()}"
+        if may_insert and (not may_sample or rng.random() < insert_bias):
+            limiter.on_insert(insert_size)
+        else:
+            limiter.on_sample(sample_size)
+    return limiter.stats()
+
+
 @pytest.mark.parametrize("insert_bias", [0.9, 0.1])
 @pytest.mark.parametrize(
     ("spi", "insert_steps", "sample_steps", "min_size"),
@@ -97,18 +118,7 @@ def test_minimal_buffer_never_deadlocks_and_ratio_converges(
     """
     rng = np.random.default_rng(0)
     limiter = make(spi, min_size, None, insert_steps, sample_steps)
-    for _ in range(20_000):
-        # Sizes vary up to the declared maxima (a short final fragment, a smaller batch).
-        insert_size = int(rng.integers(1, insert_steps + 1)) if rng.random() < 0.2 else insert_steps
-        sample_size = int(rng.integers(1, sample_steps + 1)) if rng.random() < 0.2 else sample_steps
-        may_insert = limiter.can_insert(insert_size)
-        may_sample = limiter.can_sample(sample_size)
-        assert may_insert or may_sample, f"deadlock at {limiter.stats()}"
-        if may_insert and (not may_sample or rng.random() < insert_bias):
-            limiter.on_insert(insert_size)
-        else:
-            limiter.on_sample(sample_size)
-    stats = limiter.stats()
+    stats = race(limiter, rng, insert_bias, insert_steps, sample_steps, vary_sizes=True)
     assert stats["inserted_steps"] >= 10 * min_size
     # |diff - offset| <= error_buffer (+ one request), so the achieved ratio is within
     # (offset + error_buffer + one request) / inserted_steps of the target.
@@ -138,3 +148,40 @@ def test_state_round_trip_and_bad_state():
     assert b.stats() == a.stats()
     with pytest.raises(ValueError, match="sampled_steps"):
         b.load_state_dict({"inserted_steps": 0, "sampled_steps": -1})
+
+
+@pytest.mark.parametrize("upper", [2.0, float("nan"), float("inf"), "x"])
+def test_band_refuses_an_upper_end_below_the_ratio_or_not_finite(upper):
+    with pytest.raises(ValueError, match="max_samples_per_insert"):
+        make(spi=4.0, max_samples_per_insert=upper)
+
+
+@pytest.mark.parametrize(
+    ("spi", "upper", "insert_steps", "sample_steps", "min_size"),
+    [(16.0, 64.0, 64, 512, 512), (1.0, 4.0, 64, 64, 64), (0.25, 0.5, 7, 3, 10)],
+)
+def test_band_never_deadlocks_and_the_speeds_pick_the_ratio_inside_it(
+    spi, upper, insert_steps, sample_steps, min_size
+):
+    """Fast actors hold the ratio at the band's lower end, scarce inserts let the learner rise
+    to its upper end; the smallest deadlock-free error buffer of the lower ratio suffices."""
+    rng = np.random.default_rng(1)
+    achieved = {}
+    for insert_bias in (0.95, 0.05):
+        limiter = make(spi, min_size, None, insert_steps, sample_steps,
+                       max_samples_per_insert=upper)
+        stats = race(limiter, rng, insert_bias, insert_steps, sample_steps)
+        achieved[insert_bias] = stats["samples_per_insert_achieved"]
+        slack = (upper * min_size + RateLimiter.min_error_buffer(spi, insert_steps, sample_steps)
+                 + upper * insert_steps + sample_steps) / stats["inserted_steps"]
+        assert spi - slack <= achieved[insert_bias] <= upper + slack
+    assert achieved[0.95] == pytest.approx(spi, rel=0.05)  # actors ahead: the learner's floor
+    assert achieved[0.05] == pytest.approx(upper, rel=0.05)  # inserts scarce: the ceiling
+
+
+def test_a_band_of_zero_width_is_the_fixed_ratio():
+    rng_a, rng_b = np.random.default_rng(2), np.random.default_rng(2)
+    fixed = race(make(spi=4.0), rng_a, 0.3, 64, 512, iterations=3_000)
+    band = race(make(spi=4.0, max_samples_per_insert=4.0), rng_b, 0.3, 64, 512,
+                    iterations=3_000)
+    assert band == fixed

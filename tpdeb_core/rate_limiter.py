@@ -27,6 +27,24 @@ inserts. `min_error_buffer` returns the larger of the two bounds. Also refused: 
 or non-finite ratio (diff never moves the right way), sizes below one step, and a buffer
 capacity below `min_size_to_sample` (it could never hold enough to start sampling).
 
+A band instead of one ratio (`max_samples_per_insert` above `samples_per_insert`): when inserts
+are scarce (a thin link, slow actors) an idle learner may replay more, up to the upper ratio,
+instead of waiting. Inserts are then gated at the lower ratio and samples at the upper one:
+
+    diff_lo = inserted_steps · spi_lo − sampled_steps ≤ max_diff = spi_lo · min_size + error_buffer
+    diff_hi = inserted_steps · spi_hi − sampled_steps ≥ min_diff = spi_hi · min_size − error_buffer
+
+so the achieved ratio settles anywhere in [spi_lo, spi_hi] (within error_buffer / inserted_steps),
+wherever the two sides' speeds put it. The same bound keeps it free of deadlock: with
+Δ = spi_hi − spi_lo, diff_hi = diff_lo + inserted_steps·Δ and min_diff = spi_lo·min_size +
+min_size·Δ − error_buffer, so both sides refused means
+
+    max_diff − insert_steps·spi_lo < diff_lo < min_diff + sample_steps − inserted_steps·Δ
+                                         ≤ spi_lo·min_size − error_buffer + sample_steps
+
+(once sampling has started, inserted_steps ≥ min_size), which is empty under the same
+2·error_buffer ≥ insert_steps·spi_lo + sample_steps as for one ratio.
+
 Pure: no clocks, threads or blocking; the caller waits and retries.
 """
 
@@ -59,7 +77,10 @@ class RateLimiter:
     """Allows inserts and samples so that sampled/inserted steps stays near samples_per_insert.
 
     Args:
-        samples_per_insert: target replay ratio: sampled steps per inserted step (> 0).
+        samples_per_insert: target replay ratio: sampled steps per inserted step (> 0); with
+            a band, its lower end (inserts wait for the learner below it).
+        max_samples_per_insert: the upper end of a band (samples wait for inserts above it);
+            None (or equal to samples_per_insert): one fixed ratio.
         min_size_to_sample: inserted steps required before the first sample.
         error_buffer: tolerance on diff, in sampled steps; at least `min_error_buffer(...)`.
         insert_steps: the largest insert the caller will ask for, in steps (a fragment: T).
@@ -77,12 +98,20 @@ class RateLimiter:
         insert_steps: int,
         sample_steps: int,
         capacity_steps: int | None = None,
+        max_samples_per_insert: float | None = None,
     ) -> None:
         spi = _as_real("samples_per_insert", samples_per_insert)
         if not (math.isfinite(spi) and spi > 0):
             raise ValueError(
                 f"samples_per_insert must be finite and > 0, got {samples_per_insert!r}: with "
                 f"no positive ratio, inserting never makes room to sample"
+            )
+        spi_max = spi if max_samples_per_insert is None else _as_real(
+            "max_samples_per_insert", max_samples_per_insert)
+        if not (math.isfinite(spi_max) and spi_max >= spi):
+            raise ValueError(
+                f"max_samples_per_insert={max_samples_per_insert!r} must be finite and >= "
+                f"samples_per_insert={spi} (the upper end of the band)"
             )
         self._min_size_to_sample = _as_steps("min_size_to_sample", min_size_to_sample)
         self._insert_steps = _as_steps("insert_steps", insert_steps)
@@ -105,9 +134,9 @@ class RateLimiter:
                 f"{needed}; raise error_buffer or use smaller fragments/batches"
             )
         self._samples_per_insert = spi
-        offset = spi * self._min_size_to_sample
-        self._min_diff = offset - buffer
-        self._max_diff = offset + buffer
+        self._max_samples_per_insert = spi_max
+        self._max_diff = spi * self._min_size_to_sample + buffer  # gates inserts, at spi
+        self._min_diff = spi_max * self._min_size_to_sample - buffer  # gates samples, at spi_max
         self._inserted_steps = 0
         self._sampled_steps = 0
 
@@ -116,11 +145,12 @@ class RateLimiter:
         """The smallest error_buffer that cannot deadlock (see the module docstring)."""
         return max((insert_steps * samples_per_insert + sample_steps) / 2.0, float(sample_steps))
 
-    def _diff(self) -> float:
-        return self._inserted_steps * self._samples_per_insert - self._sampled_steps
+    def _diff(self, ratio: float | None = None) -> float:
+        ratio = self._samples_per_insert if ratio is None else ratio
+        return self._inserted_steps * ratio - self._sampled_steps
 
     def _slack(self) -> float:
-        scale = self._inserted_steps * self._samples_per_insert + self._sampled_steps
+        scale = self._inserted_steps * self._max_samples_per_insert + self._sampled_steps
         return _RELATIVE_SLACK * (1.0 + scale + abs(self._max_diff))
 
     def can_insert(self, num_steps: int) -> bool:
@@ -136,7 +166,8 @@ class RateLimiter:
         num_steps = self._check_request(num_steps, self._sample_steps, "sample")
         if self._inserted_steps < self._min_size_to_sample:
             return False
-        return self._diff() - num_steps >= self._min_diff - self._slack()
+        return (self._diff(self._max_samples_per_insert) - num_steps
+                >= self._min_diff - self._slack())
 
     @staticmethod
     def _check_request(num_steps: int, largest: int, what: str) -> int:
@@ -173,7 +204,10 @@ class RateLimiter:
             "inserted_steps": self._inserted_steps,
             "sampled_steps": self._sampled_steps,
             "samples_per_insert_achieved": achieved,
-            "diff": self._diff(),
-            "min_diff": self._min_diff,
+            "samples_per_insert": self._samples_per_insert,
+            "max_samples_per_insert": self._max_samples_per_insert,
+            "diff": self._diff(),  # against max_diff, which gates inserts
             "max_diff": self._max_diff,
+            "upper_diff": self._diff(self._max_samples_per_insert),  # against min_diff: samples
+            "min_diff": self._min_diff,
         }

@@ -134,6 +134,10 @@ class ReplaySettings:
     """fragments per learner batch (B); a batch holds B·T steps"""
     replay_ratio: float = 16.0
     """sampled steps per inserted step (Reverb's samples_per_insert)"""
+    max_replay_ratio: float = 0.0
+    """upper end of a replay-ratio band: while inserts are scarce (a thin link, slow actors)
+    the learner may replay up to this many sampled steps per inserted step instead of waiting,
+    and inserts still wait below replay_ratio; 0: one fixed ratio"""
     rate_error_buffer_steps: float = 0.0
     """rate limiter tolerance in sampled steps; 0 picks twice the smallest deadlock-free value"""
     learning_starts_fragments: int = 8
@@ -163,6 +167,9 @@ class ReplaySettings:
             (self.replay_retention in RETENTIONS, "replay_retention",
              f"must be one of {', '.join(RETENTIONS)}"),
             (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
+            (self.max_replay_ratio == 0.0 or self.max_replay_ratio >= self.replay_ratio,
+             "max_replay_ratio", f"must be 0 (a fixed ratio) or ≥ replay_ratio="
+             f"{self.replay_ratio} (the upper end of the band)"),
         ])
 
 
@@ -241,6 +248,7 @@ class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig)
                 insert_steps=self.fragment_len,
                 sample_steps=self.batch_steps,
                 capacity_steps=capacity,
+                max_samples_per_insert=self.max_replay_ratio or None,
             )
         except ValueError as exc:
             raise ConfigError(f"replay ratio settings: {exc}") from None
