@@ -92,17 +92,25 @@ def summarize(rows: list[dict], total_steps: int) -> dict:
         if values:
             diagnostics[tag] = statistics.mean(values)
     return {"final_return": training_return(curve, total_steps), "steps": last,
-            "episodes": len(curve), "diagnostics": diagnostics, "curve": thin(curve, 400)}
+            "episodes": len(curve), "diagnostics": diagnostics, "curve": thin(curve, 400),
+            "policy_loss": thin(series(rows, "losses/policy_loss"), 200, digits=5),
+            "clock": thin(series(rows, "perf/train_elapsed_s"), 200)}
 
 
-def thin(curve: list[tuple[int, float]], points: int) -> list[tuple[int, float]]:
-    """At most `points` (step, return) pairs, each the mean of a run of consecutive episodes:
-    keeps result files small without changing the curve's shape."""
+def series(rows: list[dict], tag: str) -> list[tuple[int, float]]:
+    """(step, value) of one logged metric, in step order."""
+    return sorted((r["global_step"], r[tag]) for r in rows if tag in r)
+
+
+def thin(curve: list[tuple[int, float]], points: int,
+         digits: int = 2) -> list[tuple[int, float]]:
+    """At most `points` (step, value) pairs, each the mean of a run of consecutive points (of
+    episodes, of logged rows): keeps result files small without changing the curve's shape."""
     if len(curve) <= points:
-        return [(int(s), round(float(r), 2)) for s, r in curve]
+        return [(int(s), round(float(r), digits)) for s, r in curve]
     size = len(curve) / points
     out = []
     for i in range(points):
         chunk = curve[int(i * size):int((i + 1) * size)]
-        out.append((int(chunk[-1][0]), round(statistics.mean(r for _, r in chunk), 2)))
+        out.append((int(chunk[-1][0]), round(statistics.mean(r for _, r in chunk), digits)))
     return out
