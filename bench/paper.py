@@ -80,7 +80,9 @@ def code_version() -> str:
     return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
 
 
-def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
+def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> dict | None:
+    """One run to its result file (args: tag, steps, set, timeout_s, eval_episodes; `flags`:
+    cluster flags such as --actors); the result, or None where it failed."""
     path = result_path(args.tag, env_id, algo, args.steps, seed)
     if path.exists():
         return json.loads(path.read_text())
@@ -96,6 +98,7 @@ def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
         extra = ["--set", f"algo={algo}"]
         for item in args.set:
             extra += ["--set", item]
+        extra += list(flags)
         print(f"[paper] {time.strftime('%H:%M')} {args.tag}: {env_id} | {algo} | seed {seed} | "
               f"{args.steps:,} steps …", flush=True)
         code, wall_s = run_cluster(env_id, args.steps, seed, run_dir, extra,
@@ -108,7 +111,7 @@ def run_one(args, env_id: str, algo: str, seed: int) -> dict | None:
     if wall_s != wall_s:  # recorded afterwards: the wall time from the cluster's own log
         wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,
-                  overrides=list(args.set), wall_s=round(wall_s, 1),
+                  overrides=list(args.set) + list(flags), wall_s=round(wall_s, 1),
                   sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)

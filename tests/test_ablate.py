@@ -1,6 +1,7 @@
 """The ablation grid's plan and resume (bench/ablate.py) and what each run's file keeps
 (bench/runs.py), on made-up rows: nothing here trains."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -19,3 +20,119 @@ def test_a_run_file_keeps_its_curves_policy_loss_and_clock():
     assert len(summary["policy_loss"]) == 100 and summary["policy_loss"][-1] == (100_000, -0.01)
     assert summary["clock"][0] == (1_000, 0.5) and summary["clock"][-1] == (100_000, 50.0)
     assert runs.thin(runs.series(rows, "perf/train_elapsed_s"), 10)[-1] == (100_000, 47.75)
+
+
+import ablate  # noqa: E402
+import paper  # noqa: E402
+import pytest  # noqa: E402
+
+from tpdeb.services.config.presets import layer  # noqa: E402
+from tpdeb.services.config.train import TrainConfig  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def full_plan():
+    return ablate.plan(list(ablate.studies()))
+
+
+def test_the_plan_holds_the_papers_grid_of_settings(full_plan):
+    cells = {(r.study, r.env_id, r.cell.label) for r in full_plan}
+    assert {label for s, _, label in cells if s == "zeta"} == {
+        f"zeta={v}" for v in ("0", "0.1", "0.2", "0.4", "0.6", "1")}
+    # τ 0.05 is the preset's, the run listed under ζ 0.2: a run shared by studies comes once.
+    assert {label for s, _, label in cells if s == "tau"} == {
+        f"tau={v}" for v in ("0.001", "0.005", "0.01", "0.1")}
+    buffers = [r for r in full_plan if r.study == "buffers"]
+    assert len(buffers) == 16 and {r.seed for r in buffers} == {11}
+    assert {r.cell.actors for r in full_plan if r.study == "workers"} == {1, 4, 8}
+    assert {(e, label) for s, e, label in cells if s in ("priority", "kl")} == {
+        ("Ant-v5", "priority=step"), ("Hopper-v5", "priority=trajectory"),
+        ("Hopper-v5", "priority=step"), ("Ant-v5", "kl=off"), ("Hopper-v5", "kl=off")}
+    assert {r.seed for r in full_plan} == {11, 12, 13}
+    assert len({r.path for r in full_plan}) == len(full_plan) == 70
+
+
+def test_runs_on_the_preset_are_the_comparison_grids_own(full_plan):
+    shared = {(r.env_id, r.seed) for r in full_plan if r.shared}
+    assert shared == {(e, s) for e in ("Ant-v5", "Hopper-v5") for s in (11, 12, 13)}
+    for r in full_plan:
+        if r.shared:
+            assert r.path == paper.result_path("paper", r.env_id, "tpdeb", 1_000_000, r.seed)
+        else:
+            assert r.path.parent.relative_to(paper.DATA).parts[0] == "ablation"
+
+
+def test_every_cell_is_a_valid_configuration_of_its_task(full_plan):
+    """Each run's settings on top of its preset pass every check a cluster would make (the
+    buffer capacities against the rate limiter among them)."""
+    cells = {(r.env_id, r.cell.label): r.cell for r in full_plan}
+    for (env_id, _), cell in cells.items():
+        config = TrainConfig(**layer(TrainConfig, {"env_id": env_id, **cell.settings}))
+        for key, value in cell.settings.items():
+            assert getattr(config, key) == value
+    np_ = {r.cell.settings["prioritized_capacity"] for r in full_plan if r.study == "buffers"}
+    assert np_ == {16, 312, 625, 1250}  # 1e3, 2e4, 4e4, 8e4 steps in fragments of 64
+
+
+def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch, full_plan):
+    monkeypatch.setattr(paper, "DATA", tmp_path)
+    runs = [r for r in full_plan if r.study == "workers" and r.seed == 11]
+    calls = []
+
+    def fake_run_one(args, env_id, algo, seed, flags=()):
+        calls.append((args.tag, env_id, seed, list(args.set), list(flags)))
+        path = paper.result_path(args.tag, env_id, algo, args.steps, seed)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("{}")
+        return {}
+
+    monkeypatch.setattr(ablate, "run_one", fake_run_one)
+    first = runs[:1]
+    ablate.execute(first, timeout_s=1, eval_episodes=0)
+    assert calls == [("ablation/workers/actors-1", "Ant-v5", 11, [], ["--actors", "1"])]
+    ablate.execute(runs, timeout_s=1, eval_episodes=0)  # the first is done: only the others
+    assert [c[4] for c in calls[1:]] == [["--actors", "4"], ["--actors", "8"]]
+    ablate.execute(runs, timeout_s=1, eval_episodes=0)
+    assert len(calls) == 3
+
+
+def test_unknown_studies_are_refused():
+    with pytest.raises(SystemExit, match="unknown study bogus; studies are zeta, tau"):
+        ablate.plan(["bogus"])
+
+
+def made_up(level: float, seed: int, clock_rate: float = 2_000.0) -> dict:
+    curve = [[s, level * s / 1_000_000 + seed] for s in range(0, 1_000_001, 10_000)]
+    return {"final_return": level + seed, "eval": {"mean_return": level + seed + 100},
+            "curve": curve, "policy_loss": [[s, -s * 1e-8] for s, _ in curve],
+            "clock": [[s, s / clock_rate] for s, _ in curve], "wall_s": 500.0, "code": "abc1234"}
+
+
+def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch, full_plan):
+    import ablate_report
+
+    monkeypatch.setattr(paper, "DATA", tmp_path / "data")
+    monkeypatch.setattr(ablate_report, "DOC", tmp_path / "ABLATIONS.md")
+    monkeypatch.setattr(ablate_report, "IMAGES", tmp_path / "img")
+    levels = {"zeta=0": 1000, "zeta=0.2": 3000, "zeta=0.6": 2000, "priority=step": 2900,
+              "kl=off": 1000, "actors=1": 2500, "N_u=5k,N_p=1k": 1500, "N_u=1M,N_p=80k": 500}
+    for r in full_plan:
+        level = levels.get(r.cell.label, 3000 if r.shared else None)
+        if level is not None:
+            r.path.parent.mkdir(parents=True, exist_ok=True)
+            r.path.write_text(json.dumps(made_up(level, r.seed)))
+    ablate_report.report(full_plan)
+    text = (tmp_path / "ABLATIONS.md").read_text()
+    for name in ablate.studies():
+        assert f"## {name}:" in text
+    assert "made on commit abc1234" in text
+    assert "Ant-v5: the best ζ is 0.2 (3,012)" in text
+    assert "Ant-v5: priority=trajectory vs priority=step: 3,012 ± 1 (n=3) against 2,912 ± 1 " \
+           "(n=3): higher" in text
+    assert "Hopper-v5: kl=preset vs kl=off: 3,012 ± 1 (n=3) against 1,012 ± 1 (n=3): higher" in text
+    assert "2 actors 3,012 in 8.3 min" in text
+    assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text
+    assert "tau" in text and "too few runs for a verdict yet" in text  # τ: only the preset's
+    images = {p.name for p in (tmp_path / "img").iterdir()}
+    assert {"zeta-Ant-v5.png", "zeta-policy-loss-Ant-v5.png", "workers-clock-Ant-v5.png",
+            "buffers-heatmap-Ant-v5.png", "kl-Hopper-v5.png"} <= images
