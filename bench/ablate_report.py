@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import statistics
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -195,7 +196,8 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> st
 def section(study: Study, presets: dict[str, dict]) -> str:
     by_env = {env_id: [(c.label, cell_runs(study, env_id, c, presets[env_id]))
                        for c in study.cells] for env_id in study.envs}
-    out = [f"## {study.name}: {study.figure}", "", f"The paper: {PAPER[study.name]}", "",
+    out = [f"## {study.name}: {study.figure}", "",
+           textwrap.fill(f"The paper: {PAPER[study.name]}", 98), "",
            f"`python bench/ablate.py --studies {study.name}` "
            f"({seeds(len(study.seeds))}: {', '.join(map(str, study.seeds))})", ""]
     if not any(runs for rows in by_env.values() for _, runs in rows):

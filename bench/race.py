@@ -103,40 +103,48 @@ def checkpoints_at(run_dir: Path, marks: list[float]) -> dict[float, tuple[Path,
     return chosen
 
 
-def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
-    name = f"{env_id}__{seed}"
-    run_dir = OUT / args.tag / "tpdeb" / name
+def run_budgeted(env_id: str, seed: int, budget_s: float, extra: list[str], run_dir: Path,
+                 log: Path, eval_episodes: int, what: str) -> dict | None:
+    """One `tpdeb-cluster` for `budget_s` training seconds (`extra`: its flags and settings),
+    started from nothing, with a checkpoint every minute, all kept: its episodes on the clock
+    and, per 5-minute mark, the checkpoint last written before it, evaluated. None where it
+    failed (`what` names it in the message)."""
     if run_dir.exists():  # a run cut short: start again from nothing
         shutil.rmtree(run_dir)
-    budget = 60.0 * args.minutes
-    preset = PRESETS / f"{env_id}.toml"
-    extra = ["--train-for-seconds", str(budget)]
-    if preset.is_file():
-        extra += ["--set", f"preset={preset}"]
-    for item in args.set:
-        extra += ["--set", item]
-    print(f"[race] {time.strftime('%H:%M')} {args.tag}: tpdeb | {env_id} | seed {seed} | "
-          f"{args.minutes:g} min …", flush=True)
-    code, wall_s = run_cluster(env_id, NEVER, seed, run_dir, extra,
-                               OUT / args.tag / "tpdeb" / f"{name}.log", budget + 600,
+    code, wall_s = run_cluster(env_id, NEVER, seed, run_dir,
+                               ["--train-for-seconds", str(budget_s), *extra], log, budget_s + 600,
                                env={"TPDEB_KEEP_CHECKPOINTS": "1000",
                                     "TPDEB_CHECKPOINT_INTERVAL_S": "60"})
     end = run_dir / "end.json"
     if code != 0 or not end.is_file():
-        print(f"[race]   exit code {code} after {wall_s:.0f} s (not recorded, will be rerun)",
-              flush=True)
+        print(f"[{what}]   exit code {code} after {wall_s:.0f} s; see {log} (not recorded, will "
+              "be rerun)", flush=True)
         return None
     end = json.loads(end.read_text())
-    episodes = on_the_clock(read_run_metrics(run_dir))
     marks = {}
-    for mark, (path, where) in checkpoints_at(run_dir, args_marks(args)).items():
-        marks[str(int(mark))] = {**where, "eval": evaluate(path, args.eval_episodes,
-                                                           10_000 + seed)}
-    return {"system": "tpdeb", "env_id": env_id, "seed": seed, "budget_s": budget,
-            "preset": str(preset.relative_to(ROOT)) if preset.is_file() else "task preset",
-            "overrides": list(args.set), "train_s": end["train_elapsed_s"],
-            "wall_s": round(wall_s, 1), "steps": end["global_step"], "episodes": episodes,
-            "marks": marks, "code": code_version()}
+    for mark, (path, where) in checkpoints_at(run_dir, marks_for(budget_s)).items():
+        marks[str(int(mark))] = {**where, "eval": evaluate(path, eval_episodes, 10_000 + seed)}
+    return {"env_id": env_id, "seed": seed, "budget_s": budget_s, "train_s":
+            end["train_elapsed_s"], "wall_s": round(wall_s, 1), "steps": end["global_step"],
+            "episodes": on_the_clock(read_run_metrics(run_dir)), "marks": marks,
+            "code": code_version()}
+
+
+def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
+    name = f"{env_id}__{seed}"
+    preset = PRESETS / f"{env_id}.toml"
+    extra = ["--set", f"preset={preset}"] if preset.is_file() else []
+    for item in args.set:
+        extra += ["--set", item]
+    print(f"[race] {time.strftime('%H:%M')} {args.tag}: tpdeb | {env_id} | seed {seed} | "
+          f"{args.minutes:g} min …", flush=True)
+    result = run_budgeted(env_id, seed, 60.0 * args.minutes, extra,
+                          OUT / args.tag / "tpdeb" / name,
+                          OUT / args.tag / "tpdeb" / f"{name}.log", args.eval_episodes, "race")
+    if result is not None:
+        result.update(system="tpdeb", overrides=list(args.set),
+                      preset=str(preset.relative_to(ROOT)) if preset.is_file() else "task preset")
+    return result
 
 
 def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
@@ -144,7 +152,7 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
     path = result_path(args.tag, system, env_id, seed)
     cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--algo", system.split("-")[1],
            "--env-id", env_id, "--seed", str(seed), "--seconds", str(budget),
-           "--marks", *[str(m) for m in args_marks(args)], "--eval-episodes",
+           "--marks", *map(str, marks_for(budget)), "--eval-episodes",
            str(args.eval_episodes), "--out", str(path.with_suffix(".peer"))]
     print(f"[race] {time.strftime('%H:%M')} {args.tag}: {system} | {env_id} | seed {seed} | "
           f"{args.minutes:g} min …", flush=True)
@@ -162,14 +170,14 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
     return result
 
 
-def args_marks(args) -> list[float]:
-    """Every 5 minutes up to the budget, and the budget."""
-    budget = 60.0 * args.minutes
+def marks_for(budget: float) -> list[float]:
+    """Every 5 minutes up to the budget (seconds), and the budget."""
     marks = [300.0 * k for k in range(1, int(budget // 300) + 1)]
     return marks if marks and marks[-1] == budget else [*marks, budget]
 
 
-def finish(path: Path, result: dict | None) -> None:
+def finish(path: Path, result: dict | None, what: str = "race") -> None:
+    """Add each mark's training return and write the result file (nothing for a failed run)."""
     if result is None:
         return
     for mark, at in result["marks"].items():
@@ -178,7 +186,7 @@ def finish(path: Path, result: dict | None) -> None:
     shown = " | ".join(f"{int(m) / 60:g} min: {at['train_return']:,.0f}"
                        + (f" (eval {at['eval']['mean_return']:,.0f})" if at.get("eval") else "")
                        for m, at in result["marks"].items())
-    print(f"[race]   → {shown} | {result['steps']:,} steps", flush=True)
+    print(f"[{what}]   → {shown} | {result['steps']:,} steps", flush=True)
 
 
 def peers_available() -> bool:

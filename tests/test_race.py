@@ -40,12 +40,7 @@ def test_the_return_at_a_mark_is_that_of_the_last_tenth_of_the_time():
 @pytest.mark.parametrize("minutes, marks", [(15, [300.0, 600.0, 900.0]), (0.5, [30.0]),
                                             (12, [300.0, 600.0, 720.0])])
 def test_marks_every_five_minutes_and_the_budget(minutes, marks):
-    class Args:
-        pass
-
-    args = Args()
-    args.minutes = minutes
-    assert race.args_marks(args) == marks
+    assert race.marks_for(60.0 * minutes) == marks
 
 
 def test_each_mark_gets_the_checkpoint_written_last_before_it(tmp_path):

@@ -1,0 +1,146 @@
+"""The thin-link section of docs/BENCHMARKS.md and docs/img/thinlink/*.png from the result files
+of `bench/bandwidth.py` (`--report`): per task and link the return each system reached in the
+same wall-clock, its env steps and bytes, curves against wall-clock and env steps, the verdict
+on the paper's claim and on the replay-ratio band."""
+
+from __future__ import annotations
+
+import json
+import statistics
+from pathlib import Path
+
+import paper_report  # noqa: I001  (bench/ is on sys.path)
+import race_report
+from bandwidth import ALGOS, BANDED, UNLIMITED, link_name
+from paper_report import VERDICT, cell, compare, replace_between, seeds
+from runs import ROOT
+
+from tpdeb.services.plot import band, save
+
+DOC = ROOT / "docs" / "BENCHMARKS.md"
+IMAGES = ROOT / "docs" / "img" / "thinlink"
+BEGIN, END = "<!-- thinlink:begin -->", "<!-- thinlink:end -->"
+NAMES = {"tpdeb": "TPDEB", "impact": "IMPACT", "ppo-per": "PPO+PER",
+         "tpdeb-band": "TPDEB + band", "impact-band": "IMPACT + band"}
+
+
+def load(directory: Path) -> list[dict]:
+    return [json.loads(p.read_text()) for p in sorted(directory.glob("*/*.json"))]
+
+
+def final(runs: list[dict], what: str = "train") -> list[float]:
+    return race_report.at(runs, race_report.final_mark(runs), what) if runs else []
+
+
+def median(runs: list[dict], key: str, fmt: str) -> str:
+    values = [r[key] for r in runs if r.get(key) is not None]
+    return format(statistics.median(values), fmt) if values else "—"
+
+
+def links_of(results: list[dict]) -> list[float]:
+    return sorted({r["link"] for r in results}, key=lambda x: -(x or UNLIMITED))
+
+
+def table(results: list[dict], env_id: str) -> str:
+    out = ["| link | system | training return | evaluation | env steps | bytes/step up / down "
+           "| parameter lag | seeds |", "|---|---|---|---|---|---|---|---|"]
+    for link in links_of(results):
+        for system in NAMES:
+            runs = [r for r in results if (r["env_id"], r["link"], r["system"]) ==
+                    (env_id, link, system)]
+            if runs:
+                out.append(
+                    f"| {link_name(link)} | {NAMES[system]} | {cell(final(runs))} | "
+                    f"{cell(final(runs, 'eval'))} | {median(runs, 'steps', ',.0f')} | "
+                    f"{median(runs, 'up_bytes_per_step', ',.0f')} / "
+                    f"{median(runs, 'down_bytes_per_step', ',.0f')} | "
+                    f"{median(runs, 'lag', '.1f')} | {len(runs)} |")
+    return "\n".join(out)
+
+
+def verdict(results: list[dict], env_id: str) -> list[str]:
+    """TPDEB against each baseline per link, the gap's trend as the link thins, the band
+    against the fixed ratio."""
+    def runs_of(system: str, link: float) -> list[dict]:
+        return [r for r in results if (r["env_id"], r["link"], r["system"]) ==
+                (env_id, link, system)]
+
+    lines, gaps = [], []
+    for link in links_of(results):
+        ours = final(runs_of("tpdeb", link))
+        for base in ALGOS[1:]:
+            theirs = final(runs_of(base, link))
+            if ours and theirs:
+                lines.append(f"{link_name(link)}: TPDEB {cell(ours)} against {NAMES[base]} "
+                             f"{cell(theirs)}: {VERDICT[compare(ours, theirs)]}")
+                gaps.append((link, base, statistics.mean(ours) - statistics.mean(theirs)))
+        for algo in BANDED:
+            banded, fixed = final(runs_of(f"{algo}-band", link)), final(runs_of(algo, link))
+            if banded and fixed:
+                lines.append(f"{link_name(link)}: {NAMES[algo]} with the band {cell(banded)} "
+                             f"against the fixed ratio {cell(fixed)}: "
+                             f"{VERDICT[compare(banded, fixed)]}")
+    for base in ALGOS[1:]:
+        mine = [(link, gap) for link, b, gap in gaps if b == base]
+        if len(mine) >= 2:
+            widest, thinnest = mine[0], mine[-1]
+            trend = "grows" if thinnest[1] > widest[1] else "does not grow"
+            lines.append(f"TPDEB's lead over {NAMES[base]} {trend} as the link thins: "
+                         f"{widest[1]:+,.0f} at {link_name(widest[0])}, {thinnest[1]:+,.0f} at "
+                         f"{link_name(thinnest[0])}")
+    return lines
+
+
+def figure(results: list[dict], env_id: str, path: Path) -> None:
+    """Per link (columns): return against wall-clock minutes (top) and env steps (bottom)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    links = links_of([r for r in results if r["env_id"] == env_id])
+    fig, axes = plt.subplots(2, len(links), figsize=(4.0 * len(links), 6.4), squeeze=False,
+                             sharey="row")
+    for col, link in enumerate(links):
+        for n, system in enumerate(NAMES):
+            runs = [r for r in results if (r["env_id"], r["link"], r["system"]) ==
+                    (env_id, link, system) and r["episodes"]]
+            if not runs:
+                continue
+            label = f"{NAMES[system]} ({seeds(len(runs))})"
+            grid, mean, std = race_report.mean_curve(runs)
+            band(axes[0][col], grid / 60, mean, std, f"C{n}", label)
+            by_steps = [{"curve": [(s, ret) for _, s, ret in r["episodes"]]} for r in runs]
+            grid, mean, std = paper_report.mean_curve(by_steps)
+            band(axes[1][col], grid, mean, std, f"C{n}", label)
+        axes[0][col].set_title(f"{env_id}, link {link_name(link)}")
+        axes[0][col].set_xlabel("training minutes")
+        axes[1][col].set_xlabel("env steps")
+    for row in axes:
+        row[0].set_ylabel("episodic return")
+    axes[0][0].legend(fontsize=7)
+    save(fig, path)
+
+
+def report(directory: Path) -> None:
+    results = load(directory)
+    if not results:
+        print(f"no finished runs in {directory}")
+        return
+    budgets = sorted({r["budget_s"] / 60 for r in results})
+    codes = sorted({r.get("code", "?") for r in results})
+    parts = [f"Each run: {', '.join(f'{b:g}' for b in budgets)} minutes of training on two "
+             f"cores; commit{'s' * (len(codes) > 1)} {', '.join(codes)}. Training return: the "
+             "episodes ending in the last 10 % of the budget; evaluation: the final policy, 10 "
+             "deterministic episodes; bytes per env step as the link counted them."]
+    for env_id in sorted({r["env_id"] for r in results}):
+        image = IMAGES / f"{env_id}.png"
+        figure(results, env_id, image)
+        lines = verdict(results, env_id)
+        parts += [f"**{env_id}**", table(results, env_id),
+                  "\n".join(f"- {x}" for x in lines) or "- too few runs for a verdict yet.",
+                  f"![{env_id} behind thin links](img/thinlink/{image.name})"]
+    text = "\n\n".join(parts)
+    print(text)
+    if replace_between(DOC, BEGIN, END, text):
+        print(f"\nupdated {DOC}")

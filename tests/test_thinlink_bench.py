@@ -1,0 +1,101 @@
+"""The thin-link grid (bench/bandwidth.py): its plan, each run's flags, resume, and the report's
+tables and verdicts on made-up runs; nothing here trains."""
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import bandwidth  # noqa: E402
+import bandwidth_report  # noqa: E402
+
+
+def test_the_grid_is_three_algorithms_on_four_links_seed_major():
+    runs = bandwidth.plan(["HalfCheetah-v5"], [11, 12, 13], list(bandwidth.LINKS), band=False)
+    assert len(runs) == 36 and len({r.path for r in runs}) == 36
+    assert [r.seed for r in runs[:12]] == [11] * 12  # every link's first seed comes first
+    assert [bandwidth.link_name(r.link) for r in runs[:12:3]] == [
+        "unlimited", "1 MB/s", "256 kB/s", "64 kB/s"]
+    assert [r.variant for r in runs[:3]] == ["tpdeb", "impact", "ppo-per"]
+    banded = bandwidth.plan(["HalfCheetah-v5"], [11], [65536.0], band=True)
+    assert [r.variant for r in banded] == ["tpdeb-band", "impact-band"]
+    assert banded[0].path.relative_to(bandwidth.DATA).as_posix() == (
+        "tpdeb-band/HalfCheetah-v5__64kBs__11.json")
+
+
+def test_each_run_goes_through_the_link_compressed_with_its_algorithm():
+    unlimited, thin = bandwidth.plan(["HalfCheetah-v5"], [11], [0, 65536], band=False)[::3]
+    flags = bandwidth.cluster_flags(unlimited, band_factor=4.0)
+    assert flags[:4] == ["--link-up-bytes-per-s", "1000000000000.0",
+                         "--link-down-bytes-per-s", "1000000000000.0"]
+    assert "algo=tpdeb" in flags and "trajectory_compression=zstd" in flags
+    assert "params_dtype=float16" in flags and not any("max_replay" in f for f in flags)
+    assert bandwidth.cluster_flags(thin, 4.0)[1] == "65536"
+    impact_band = bandwidth.plan(["HalfCheetah-v5"], [11], [65536], band=True)[1]
+    ratio = bandwidth.preset_replay_ratio("HalfCheetah-v5", "impact")
+    assert f"max_replay_ratio={4 * ratio:g}" in bandwidth.cluster_flags(impact_band, 4.0)
+
+
+def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch):
+    monkeypatch.setattr(bandwidth, "DATA", tmp_path)
+    monkeypatch.setattr(bandwidth, "OUT", tmp_path / "out")
+    runs = bandwidth.plan(["Hopper-v5"], [11], [0], band=False)
+    calls = []
+
+    def fake_run(env_id, seed, budget_s, flags, run_dir, log, episodes, what):
+        calls.append(flags)
+        return {"episodes": [(1.0, 100, 5.0)], "marks": {"60": {"eval": None}}, "steps": 100,
+                "budget_s": budget_s}
+
+    monkeypatch.setattr(bandwidth, "run_budgeted", fake_run)
+    monkeypatch.setattr(bandwidth, "read_run_metrics", lambda run_dir: [
+        {"global_step": 100, "link/up_bytes_per_env_step": 30.0,
+         "link/down_bytes_per_env_step": 2.0, "actor/param_version_lag": 3.0}])
+    bandwidth.execute(runs[:1], minutes=1, band_factor=4.0, eval_episodes=0)
+    saved = json.loads(runs[0].path.read_text())
+    assert (saved["up_bytes_per_step"], saved["down_bytes_per_step"], saved["lag"]) == (30, 2, 3)
+    assert saved["system"] == "tpdeb" and saved["marks"]["60"]["train_return"] == 5.0
+    bandwidth.execute(runs, minutes=1, band_factor=4.0, eval_episodes=0)
+    assert len(calls) == 3  # the first was done: the other two algorithms only
+
+
+def made_up(system: str, link: float, seed: int, level: float) -> dict:
+    episodes = [(t, 1000 * t, level * t / 600 + seed) for t in range(1, 601, 5)]
+    return {"env_id": "HalfCheetah-v5", "system": system, "link": link, "seed": seed,
+            "budget_s": 600.0, "steps": 600_000, "episodes": episodes, "code": "abc1234",
+            "marks": {"600": {"train_return": level + seed, "eval": {"mean_return": level}}},
+            "up_bytes_per_step": 40.0, "down_bytes_per_step": 3.0, "lag": 2.0}
+
+
+def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch):
+    monkeypatch.setattr(bandwidth_report, "DOC", tmp_path / "BENCHMARKS.md")
+    monkeypatch.setattr(bandwidth_report, "IMAGES", tmp_path / "img")
+    (tmp_path / "BENCHMARKS.md").write_text(
+        f"# B\n\n{bandwidth_report.BEGIN}\nold\n{bandwidth_report.END}\nafter\n")
+    levels = {("tpdeb", 0): 5000, ("impact", 0): 4990, ("tpdeb", 65536): 3000,
+              ("impact", 65536): 1000, ("tpdeb-band", 65536): 4000}
+    for (system, link), level in levels.items():
+        for seed in (11, 12, 13):
+            path = tmp_path / "data" / system / f"HalfCheetah-v5__{link}__{seed}.json"
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(json.dumps(made_up(system, link, seed, level)))
+    bandwidth_report.report(tmp_path / "data")
+    text = (tmp_path / "BENCHMARKS.md").read_text()
+    assert "old" not in text and text.endswith("after\n")
+    assert "unlimited: TPDEB 5,012 ± 1 (n=3) against IMPACT 5,002 ± 1 (n=3): higher" in text
+    assert "64 kB/s: TPDEB 3,012 ± 1 (n=3) against IMPACT 1,012 ± 1 (n=3): higher" in text
+    assert "TPDEB's lead over IMPACT grows as the link thins: +10 at unlimited, +2,000 at " \
+           "64 kB/s" in text
+    assert "64 kB/s: TPDEB with the band 4,012 ± 1 (n=3) against the fixed ratio 3,012" in text
+    assert "| 64 kB/s | TPDEB + band | 4,012 ± 1 (n=3) | 4,000 ± 0 (n=3) | 600,000 | 40 / 3 |" \
+           in text
+    assert (tmp_path / "img" / "HalfCheetah-v5.png").is_file()
+
+
+def test_a_band_factor_below_one_is_refused(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["bandwidth.py", "--band-factor", "0.5", "--plan"])
+    with pytest.raises(SystemExit):
+        bandwidth.main()
+    assert "--band-factor 0.5" in capsys.readouterr().err
