@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import re
 
-SCHEMA_VERSION = 6  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
+SCHEMA_VERSION = 7  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
 # per-step weights (step-level PER); 4: and no longer the number of transitions drawn (the loss
 # normalises by the weights' sum); 5: a sample reply carries its fragments stacked (Batch);
 # 6: one fragment schema (tpdeb_core/schema.py): fragments no longer carry the actor's values,
-# acks the ingested count, parameters their source; the run spec names the policy's std
+# acks the ingested count, parameters their source; the run spec names the policy's std;
+# 7: the run spec carries the env's keyword arguments
 
 RUN_ID_RULE = r"[A-Za-z0-9_.-]{1,64}"
 NAME_RULE = r"[A-Za-z0-9_.-]+"  # role and ident chunks: no '/', '*', '$', '?', '#' (Zenoh syntax)

@@ -67,6 +67,7 @@ class RunSpec:
     priority_kappa: float = wire(Float(ge=0.0))
     action_low: np.ndarray = wire(Array(F4, "act_dim"))  # float32[act_dim]
     action_high: np.ndarray = wire(Array(F4, "act_dim"))
+    env_kwargs: str = wire(Str(max_len=4096), default="")  # gym.make's, as sorted JSON
     schema_version: int = wire(Int(), default=SCHEMA_VERSION)
 
     def cross_check(self, scope: Scope, where: str) -> None:

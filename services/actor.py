@@ -303,7 +303,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = configure(ActorServiceConfig, argv, PROG,
                            "TPDEB actor: steps environments, sends fragments to the replay server.")
-        envs = make_vector_env(config.env_id, config.num_envs)  # an unknown env id fails here
+        # A bad env id, module or keyword argument fails here, in one line.
+        envs = make_vector_env(config.env_id, config.num_envs, config.env_kwargs)
         obs_dim, act_dim, _, _ = space_dims(envs)
         session = open_for(config)
     except ConfigError as exc:
@@ -313,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         keys = Keys(config.run_id)
         spec = fetch_spec(session, keys, config.connect_timeout_s, stop)
-        problem = spec_mismatch(spec, config.env_id, obs_dim, act_dim)
+        problem = spec_mismatch(spec, config.env_id, obs_dim, act_dim, config.env_kwargs)
         if problem:
             raise ConfigError(f"run spec mismatch: {problem}")
         if config.actor_id == "auto":

@@ -368,6 +368,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", help=f"cluster file (default: {DEFAULT_FILE})")
     p.add_argument("--env-id", help="gymnasium environment id (overrides [train])")
+    p.add_argument("--env-kwargs", metavar="KWARGS",
+                   help="gymnasium.make's keyword arguments: a JSON object or a TOML inline table")
     p.add_argument("--total-timesteps", type=int, help="env steps to train for")
     p.add_argument("--train-for-seconds", type=float, metavar="S",
                    help="seconds of training; with --total-timesteps, whichever binds first "
@@ -397,7 +399,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     try:
         plan = make_plan(parse_args(argv))
-        make_vector_env(plan.train.env_id, 1).close()  # one clear line for a wrong env id
+        make_vector_env(plan.train.env_id, 1, plan.train.env_kwargs).close()  # a bad env: one line
     except ConfigError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2

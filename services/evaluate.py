@@ -43,7 +43,8 @@ def find_checkpoint(target: Path) -> Path:
 
 
 def load_policy(path: Path, env_id: str | None):
-    """(model, env_id) from a checkpoint; refuses one trained on another env than `env_id`."""
+    """(model, env_id, env_kwargs) from a checkpoint; refuses one trained on another env than
+    `env_id`."""
     from tpdeb.services.store.checkpoint import read_checkpoint
     from tpdeb.tpdeb_core.model import ActorCritic
     from tpdeb.tpdeb_core.policy import dims_of, policy_std_of
@@ -69,20 +70,25 @@ def load_policy(path: Path, env_id: str | None):
     except RuntimeError as exc:
         raise EvalError(f"{path}: the weights do not fit the network its config describes "
                         f"({str(exc).splitlines()[0][:160]})") from None
-    return model, trained_on
+    return model, trained_on, config.get("env_kwargs", "")
 
 
-def make_env(env_id: str, video: bool):
+def make_env(env_id: str, video: bool, env_kwargs: str = ""):
     import gymnasium as gym
 
-    from tpdeb.services.envs import quiet_mujoco
+    from tpdeb.services.config import ConfigError
+    from tpdeb.services.envs import import_env_module, parse_env_kwargs, quiet_mujoco
 
     quiet_mujoco()
     if video:
         os.environ.setdefault("MUJOCO_GL", "egl")
     try:
-        return gym.make(env_id, render_mode="rgb_array" if video else None)
-    except gym.error.Error as exc:
+        import_env_module(env_id)
+        kwargs = parse_env_kwargs(env_kwargs)
+        if video:  # only then: an env without rendering need not take render_mode at all
+            kwargs["render_mode"] = "rgb_array"
+        return gym.make(env_id, **kwargs)
+    except (ConfigError, ValueError, TypeError, gym.error.Error) as exc:
         raise EvalError(f"env {env_id!r} cannot be made here: {exc}") from None
 
 
@@ -155,8 +161,8 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(1)
-        model, env_id = load_policy(path, args.env_id)
-        env = make_env(env_id, args.video is not None)
+        model, env_id, env_kwargs = load_policy(path, args.env_id)
+        env = make_env(env_id, args.video is not None, env_kwargs)
         frames = None
         if args.video is not None:
             render_check(env)

@@ -551,9 +551,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         keys = Keys(config.run_id)
         spec = fetch_spec(session, keys, config.connect_timeout_s, stop)
-        if spec.env_id != config.env_id:
-            raise ConfigError(f"the replay server trains {spec.env_id!r}, this learner was "
-                              f"started with --env-id {config.env_id!r}")
+        if (spec.env_id, spec.env_kwargs) != (config.env_id, config.env_kwargs):
+            raise ConfigError(f"the replay server trains {spec.env_id!r} with env_kwargs "
+                              f"{spec.env_kwargs or '{}'}, this learner was started with "
+                              f"--env-id {config.env_id!r} and {config.env_kwargs or '{}'}")
         service = LearnerService(config, spec, session, stop, resume)
     except ConfigError as exc:
         close_session(session, PROG)

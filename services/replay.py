@@ -530,7 +530,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = configure(ReplayServiceConfig, argv, PROG,
                            "TPDEB replay server: dual prioritized/uniform replay over Zenoh.")
-        envs = make_vector_env(config.env_id, 1)
+        envs = make_vector_env(config.env_id, 1, config.env_kwargs)
         spec = run_spec(config, *space_dims(envs))
         envs.close()
         # With --listen it is the run's router; with only --connect, a client of one.

@@ -57,7 +57,7 @@ class SerialRunner:
 
         self.stop = StopSignal()
         self.bus = MemoryBus()
-        envs = make_vector_env(config.env_id, config.num_envs)
+        envs = make_vector_env(config.env_id, config.num_envs, config.env_kwargs)
         spec = run_spec(config, *space_dims(envs))
         # The learner first: it seeds torch and numpy as its process does.
         self.learner = LearnerService(config_of(LearnerServiceConfig, checkpoint_interval_s=0.0),

@@ -119,8 +119,8 @@ def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first
     training = {f.name for f in dataclasses.fields(TrainConfig)}
     assert not training & {f.name for f in dataclasses.fields(RouterConfig)}
     actor = {f.name for f in dataclasses.fields(ActorServiceConfig)}
-    assert actor & training == {"exp_name", "algo", "preset", "env_id", "seed", "total_timesteps",
-                                "train_for_seconds",
+    assert actor & training == {"exp_name", "algo", "preset", "env_id", "env_kwargs", "seed",
+                                "total_timesteps", "train_for_seconds",
                                 "run_dir", "log_interval_s", "num_envs",
                                 "trajectory_compression"}
     # the replay: the run, the model, the buffers and the priorities, not the optimiser's

@@ -86,6 +86,8 @@ def coerce(cls, name: str, value, source: str):
             if text in ("0", "false", "no", "off"):
                 return False
             raise ValueError(value)
+        if kind is str and isinstance(value, dict):  # a TOML table: its JSON text
+            return json.dumps(value, sort_keys=True)
         if kind is int and isinstance(value, float) and value.is_integer():
             return int(value)
         if kind is int and isinstance(value, str):

@@ -36,7 +36,12 @@ class RunSettings:
     """auto: the task's preset deploy/presets/{env_id}.toml when there is one | none | a TOML
     file; settings given by --config, TPDEB_* or flags override the preset's"""
     env_id: str = "HalfCheetah-v5"
-    """gymnasium environment id (MuJoCo, continuous actions)"""
+    """gymnasium environment id (continuous actions, flat observations); module:Env-v0
+    imports module (from the current directory first) to register Env-v0"""
+    env_kwargs: str = ""
+    """keyword arguments for gymnasium.make: a JSON object ('{"ctrl_cost_weight": 0.2}') or a
+    TOML inline table ('ctrl_cost_weight = 0.2'); in a config file also a table
+    [run.env_kwargs]; every peer of the run must use the same"""
     seed: int = 1
     """seed of torch, numpy and every environment (env i of actor a gets seed + 1000 a + i)"""
     total_timesteps: int = 1_000_000
@@ -51,6 +56,12 @@ class RunSettings:
 
     def __post_init__(self):
         chain_post_init(RunSettings, self)
+        from tpdeb.services.envs import canonical_env_kwargs
+
+        try:
+            self.env_kwargs = canonical_env_kwargs(self.env_kwargs)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         check(self, [
             (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
             (math.isfinite(self.train_for_seconds) and self.train_for_seconds >= 0,

@@ -155,7 +155,8 @@ def train_settings(section: dict, args: argparse.Namespace, source: str) -> Trai
     # configuration and no child applies them again on top of a flag (see child_environment).
     train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
                   for name, value in train_variables(os.environ).items()})
-    overrides = {"env_id": args.env_id, "total_timesteps": args.total_timesteps,
+    overrides = {"env_id": args.env_id, "env_kwargs": getattr(args, "env_kwargs", None),
+                 "total_timesteps": args.total_timesteps,
                  "train_for_seconds": args.train_for_seconds,
                  "seed": args.seed, "run_dir": args.run_dir, "num_envs": args.num_envs}
     train.update({k: v for k, v in overrides.items() if v is not None})

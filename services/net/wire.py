@@ -24,14 +24,18 @@ def run_spec(config: SamplingConfig, obs_dim: int, act_dim: int, low, high) -> R
         init_log_std=config.init_log_std, policy_std=config.policy_std,
         priority_mode=config.priority_mode,
         priority_kappa=config.priority_kappa, action_low=np.asarray(low, np.float32),
-        action_high=np.asarray(high, np.float32))
+        action_high=np.asarray(high, np.float32), env_kwargs=config.env_kwargs)
 
 
-def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int) -> str | None:
+def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int,
+                  env_kwargs: str = "") -> str | None:
     """Why an actor with this env cannot join the run served by the replay (None if it can)."""
     if served.env_id != env_id:
         return (f"the run trains {served.env_id!r} but this process was started with env_id "
                 f"{env_id!r}: pass --env-id {served.env_id} or join another --run-id")
+    if served.env_kwargs != env_kwargs:
+        return (f"the run makes {env_id} with env_kwargs {served.env_kwargs or '{}'} but this "
+                f"process with {env_kwargs or '{}'}: pass the run's --env-kwargs")
     if (served.obs_dim, served.act_dim) != (obs_dim, act_dim):
         return (f"{env_id}: the run expects obs_dim {served.obs_dim}, act_dim {served.act_dim}; "
                 f"this installation's env has {obs_dim}, {act_dim} (different gymnasium version?)")
