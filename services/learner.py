@@ -55,6 +55,7 @@ from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.model_wire import model_for, params_message
 from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
 from tpdeb.services.net.wire import finite_values
+from tpdeb.services.policy_file import POLICY_FILE, acting_arrays, policy_bytes, policy_meta
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.services.store.checkpoint import (
@@ -496,6 +497,8 @@ class LearnerService:
     def finish(self, finished: bool) -> None:
         # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
         path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
+        if self.learner.updates:
+            self.write_policy()
         if finished:
             self.write_end(path)
             self.control_publisher.put(encode(Control(command="stop", reason=self.ended_by)))
@@ -519,6 +522,18 @@ class LearnerService:
         """Whether the run's steps or its time are used up (`ended_by` says which)."""
         self.ended_by = self.ended_by or self.budget.reached(self.global_step)
         return self.ended_by is not None
+
+    def write_policy(self) -> None:
+        """policy.npz in the run dir: the final policy for numpy alone (`tpdeb.load_policy`)."""
+        spec, cfg = self.spec, self.config
+        meta = policy_meta(spec.env_id, spec.env_kwargs, spec.obs_dim, spec.act_dim,
+                           cfg.obs_clip, spec.policy_std)
+        data = policy_bytes(acting_arrays(self.learner.model.arrays()), spec.action_low,
+                            spec.action_high, meta)
+        try:
+            write_atomic(self.run_dir / POLICY_FILE, lambda f: f.write(data))
+        except OSError as exc:
+            log.warning(f"{POLICY_FILE} not written ({exc})")
 
     def write_end(self, checkpoint) -> None:
         """`end.json` in the run dir: which limit ended the run, where and when."""

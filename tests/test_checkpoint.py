@@ -99,7 +99,7 @@ def test_periodic_checkpoints_are_named_rotated_and_the_final_one_stays(tmp_path
     assert state["updates"] == 50 and state["global_step"] == 5000
     assert state["version"] == 50  # fresh run: versions are the update count
     assert state["spec"] == {"env_id": ENV, "obs_dim": 4, "act_dim": 1, "hidden_sizes": [64, 64],
-                             "policy_std": "global"}
+                             "policy_std": "global", "action_low": [-1.0], "action_high": [1.0]}
     assert state["config"]["env_id"] == ENV and state["config"]["keep_checkpoints"] == 2
     assert service.checkpoints_written == 5 and service.checkpoint_s > 0
 

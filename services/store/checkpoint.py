@@ -74,9 +74,12 @@ def load(path: str | Path) -> dict:
 
 
 def spec_fields(spec) -> dict:
-    """What a checkpoint records of the run spec, to refuse resuming into another env."""
+    """What a checkpoint records of the run spec: what refuses resuming into another env, and
+    the action bounds a policy taken out of the run clips to."""
     return {"env_id": spec.env_id, "obs_dim": int(spec.obs_dim), "act_dim": int(spec.act_dim),
-            "hidden_sizes": [int(h) for h in spec.hidden_sizes], "policy_std": spec.policy_std}
+            "hidden_sizes": [int(h) for h in spec.hidden_sizes], "policy_std": spec.policy_std,
+            "action_low": [float(x) for x in spec.action_low],
+            "action_high": [float(x) for x in spec.action_high]}
 
 
 def save_training(run_dir: str | Path, learner, config, global_step: int, tag: str,

@@ -1,0 +1,111 @@
+"""The Python API: `tpdeb.train` runs a run (one process or a cluster) and returns it,
+`tpdeb.load_policy` gives its policy acting with numpy alone, exactly as the trained network
+does; bad settings and bad inputs raise one clear error."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import tpdeb
+from tpdeb.services.evaluate import load_policy as load_torch_policy
+from tpdeb.services.policy_file import POLICY_FILE
+
+ENV = "InvertedPendulum-v5"
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("api") / "run"
+    return tpdeb.train(ENV, total_timesteps=3072, seed=3, run_dir=out, quiet=True,
+                       num_envs=2, hidden_sizes=[32, 32])
+
+
+def test_train_returns_the_finished_run(run):
+    assert run.ended_by == "total_timesteps" and run.global_step >= 3072
+    assert run.checkpoint is not None and run.checkpoint.name.startswith("final_")
+    assert (run.run_dir / POLICY_FILE).is_file()
+    assert len(run.returns) > 10 and run.returns[-1][0] > 2048
+    assert any("losses/policy_loss" in row for row in run.metrics)
+    config = (run.run_dir / "config.toml").read_text()
+    assert "hidden_sizes = [32, 32]" in config and "seed = 3" in config
+
+
+def test_the_numpy_policy_acts_as_the_trained_network(run):
+    model, env_id, _ = load_torch_policy(run.checkpoint, None)
+    policy = tpdeb.load_policy(run.run_dir)
+    from_checkpoint = tpdeb.load_policy(run.checkpoint)
+    assert env_id == policy.env_id == from_checkpoint.env_id == ENV
+    obs = np.random.default_rng(0).normal(0.0, 2.0, (64, 4)).astype(np.float32)
+    expected = np.clip(model.act_deterministic(obs), -3.0, 3.0)
+    np.testing.assert_allclose(policy.act(obs), expected, rtol=0, atol=1e-5)
+    np.testing.assert_allclose(from_checkpoint.act(obs), expected, rtol=0, atol=1e-5)
+    assert policy.act(obs[0]).shape == (1,)  # one observation in, one action out
+    sampled = policy.act(obs, deterministic=False, rng=np.random.default_rng(1))
+    assert sampled.shape == (64, 1) and not np.allclose(sampled, policy.act(obs))
+    assert np.all(np.abs(sampled) <= 3.0)
+
+
+def test_loading_a_policy_file_needs_no_torch(run):
+    code = (f"import sys, numpy as np, tpdeb; p = tpdeb.load_policy({str(run.run_dir)!r}); "
+            "a = p.act(np.zeros(4)); print(json.dumps([float(a[0]), 'torch' in sys.modules, "
+            "'gymnasium' in sys.modules]))")
+    out = subprocess.run([sys.executable, "-c", "import json; " + code], capture_output=True,
+                         text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    action, torch_loaded, gym_loaded = json.loads(out.stdout)
+    assert not torch_loaded and not gym_loaded and abs(action) <= 3.0
+
+
+@pytest.mark.parametrize("obs, message", [
+    (np.zeros(5), r"an observation of shape \(5,\), but this policy \(InvertedPendulum-v5\) "
+                  r"takes \(4,\) or \(N, 4\)"),
+    (np.zeros((2, 3, 4)), r"shape \(2, 3, 4\)"),
+])
+def test_a_wrong_observation_is_refused_in_one_line(run, obs, message):
+    with pytest.raises(tpdeb.PolicyError, match=message):
+        tpdeb.load_policy(run.run_dir).act(obs)
+
+
+def test_bad_policy_sources_are_refused_in_one_line(run, tmp_path):
+    with pytest.raises(tpdeb.PolicyError, match="was trained on InvertedPendulum-v5, not "
+                                                "Hopper-v5"):
+        tpdeb.load_policy(run.run_dir, env_id="Hopper-v5")
+    with pytest.raises(tpdeb.PolicyError, match="no such run directory, policy file or "
+                                                "checkpoint"):
+        tpdeb.load_policy(tmp_path / "nothing")
+    junk = tmp_path / "junk.npz"
+    junk.write_bytes(b"not a zip")
+    with pytest.raises(tpdeb.PolicyError, match="junk.npz: not a policy file"):
+        tpdeb.load_policy(junk)
+    other = tmp_path / "other.npz"
+    np.savez(other, meta=np.frombuffer(b'{"format": "something"}', np.uint8))
+    with pytest.raises(tpdeb.PolicyError, match="not a policy file \\(format 'something'\\)"):
+        tpdeb.load_policy(other)
+    with pytest.raises(tpdeb.PolicyError, match="no checkpoints"):
+        tpdeb.load_policy(tmp_path)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"learning_rat": 3e-4}, "unknown setting 'learning_rat' \\(did you mean 'learning_rate'"),
+    ({"zeta": 2}, "zeta=2.0: must be in \\[0, 1\\]"),
+    ({"actors": 2}, "actors= needs cluster=True"),
+    ({"env_kwargs": {"no_such_argument": 1}}, "env_kwargs .* do not fit 'InvertedPendulum-v5'"),
+])
+def test_bad_settings_raise_before_anything_starts(tmp_path, kwargs, message):
+    with pytest.raises(tpdeb.TrainError, match=message):
+        tpdeb.train(ENV, total_timesteps=1000, run_dir=tmp_path / "run", **kwargs)
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(tpdeb.TrainError, match="not a registered gymnasium environment"):
+        tpdeb.train("NoSuchEnv-v0", total_timesteps=1000)
+
+
+def test_train_runs_a_cluster(tmp_path):
+    run = tpdeb.train(ENV, total_timesteps=2048, seed=2, cluster=True, actors=1, quiet=True,
+                      run_dir=tmp_path / "run", num_envs=2, learning_rate=5e-4)
+    assert run.ended_by == "total_timesteps" and run.checkpoint is not None
+    assert "learning_rate = 0.0005" in (run.run_dir / "train.toml").read_text()
+    assert (run.run_dir / "logs").is_dir() and (run.run_dir / "train.log").is_file()
+    assert run.policy().act(np.zeros(4)).shape == (1,)
