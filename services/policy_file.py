@@ -76,6 +76,9 @@ class Policy:
 
     def __init__(self, arrays: Mapping[str, np.ndarray], meta: dict, source: str = "policy"):
         self.meta, self.source = dict(meta), source
+        # What a policy file holds of it, besides the bounds and meta (to write one back).
+        self.file_arrays = {k: np.asarray(v) for k, v in arrays.items()
+                            if k not in ("action_low", "action_high")}
         self.env_id, self.env_kwargs = meta["env_id"], meta.get("env_kwargs", "")
         self.obs_dim, self.act_dim = int(meta["obs_dim"]), int(meta["act_dim"])
         try:

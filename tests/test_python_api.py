@@ -11,7 +11,7 @@ import pytest
 
 import tpdeb
 from tpdeb.services.evaluate import load_policy as load_torch_policy
-from tpdeb.services.policy_file import POLICY_FILE
+from tpdeb.services.policy_file import POLICY_FILE, policy_bytes
 
 ENV = "InvertedPendulum-v5"
 
@@ -109,3 +109,39 @@ def test_train_runs_a_cluster(tmp_path):
     assert "learning_rate = 0.0005" in (run.run_dir / "train.toml").read_text()
     assert (run.run_dir / "logs").is_dir() and (run.run_dir / "train.log").is_file()
     assert run.policy().act(np.zeros(4)).shape == (1,)
+
+
+def test_the_onnx_export_acts_as_the_numpy_policy(run, tmp_path):
+    import onnxruntime
+
+    from tpdeb.services.export import main as export_main
+
+    assert export_main([str(run.checkpoint), "-o", str(tmp_path / "again.npz")]) == 0
+    np.testing.assert_array_equal(tpdeb.load_policy(tmp_path / "again.npz").act(np.ones(4)),
+                                  tpdeb.load_policy(run.run_dir).act(np.ones(4)))
+    # The run's policy with its output layer scaled up, so that some actions pass the bounds
+    # and the clipping inside the graph acts.
+    trained = tpdeb.load_policy(run.run_dir)
+    arrays = dict(trained.file_arrays)
+    arrays["policy.mean.4.weight"] = arrays["policy.mean.4.weight"] * 50.0
+    (tmp_path / "loud.npz").write_bytes(policy_bytes(arrays, trained.low, trained.high,
+                                                     trained.meta))
+    assert export_main([str(tmp_path / "loud.npz"), "-o", str(tmp_path / "policy.onnx")]) == 0
+    session = onnxruntime.InferenceSession(str(tmp_path / "policy.onnx"),
+                                           providers=["CPUExecutionProvider"])
+    policy = tpdeb.load_policy(tmp_path / "loud.npz")
+    # far outside the normaliser's range too, where its clipping inside the graph acts
+    obs = np.random.default_rng(2).normal(0.0, 30.0, (256, 4)).astype(np.float32)
+    (action,) = session.run(["action"], {"obs": obs})
+    np.testing.assert_allclose(action, policy.act(obs), rtol=0, atol=1e-5)
+    assert np.abs(action).max() == 3.0 and (np.abs(action) < 3.0).any()
+    assert session.run(["action"], {"obs": obs[:1]})[0].shape == (1, 1)
+
+
+def test_export_refuses_what_it_cannot_write(run, tmp_path, capsys):
+    from tpdeb.services.export import main as export_main
+
+    assert export_main([str(run.run_dir), "-o", str(tmp_path / "policy.pb")]) == 2
+    assert "write a .onnx or a .npz file" in capsys.readouterr().err
+    assert export_main([str(tmp_path / "missing"), "-o", str(tmp_path / "p.onnx")]) == 2
+    assert "no such run directory" in capsys.readouterr().err
