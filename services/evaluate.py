@@ -42,7 +42,7 @@ def find_checkpoint(target: Path) -> Path:
     return (finals or found)[-1].path
 
 
-def load_policy(path: Path, env_id: str | None):
+def load_policy(path: Path, env_id: str | None, device: str = "cpu"):
     """(model, env_id, env_kwargs) from a checkpoint; refuses one trained on another env than
     `env_id`."""
     from tpdeb.services.store.checkpoint import read_checkpoint
@@ -70,6 +70,13 @@ def load_policy(path: Path, env_id: str | None):
     except RuntimeError as exc:
         raise EvalError(f"{path}: the weights do not fit the network its config describes "
                         f"({str(exc).splitlines()[0][:160]})") from None
+    from tpdeb.services.config import ConfigError
+    from tpdeb.services.device import resolve_device
+
+    try:
+        model.to_device(resolve_device(device))
+    except ConfigError as exc:
+        raise EvalError(str(exc)) from None
     return model, trained_on, config.get("env_kwargs", "")
 
 
@@ -150,6 +157,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from seed + i")
     parser.add_argument("--env-id", help="refuse a checkpoint trained on any other env")
+    parser.add_argument("--device", default="cpu",
+                        help="auto | cpu | cuda | cuda:N: where the policy runs (default cpu: "
+                        "one observation at a time is faster there)")
     parser.add_argument("--video", type=Path, help="write the episodes to this .mp4 file")
     parser.add_argument("--fps", type=int, default=0, help="video frame rate (default: the env's)")
     parser.add_argument("--json", action="store_true", help="print one JSON line")
@@ -161,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(1)
-        model, env_id, env_kwargs = load_policy(path, args.env_id)
+        model, env_id, env_kwargs = load_policy(path, args.env_id, args.device)
         env = make_env(env_id, args.video is not None, env_kwargs)
         frames = None
         if args.video is not None:

@@ -51,6 +51,7 @@ from tpdeb.services.budget import Budget, clock
 from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import LearnerServiceConfig
+from tpdeb.services.device import describe, resolve_device
 from tpdeb.services.logs import rate_limited
 from tpdeb.services.net.model_wire import model_for, params_message
 from tpdeb.services.net.session import close_session, declare_publisher, fetch_spec, open_for
@@ -87,8 +88,9 @@ class LearnerService:
         self.keys = Keys(config.run_id)
         seed_everything(config.seed)
         self.model = model_for(spec)
+        self.device = resolve_device(config.device)
         try:  # the run spec's model against this learner's loss settings
-            self.learner = Learner(self.model, config.loss_config())
+            self.learner = Learner(self.model, config.loss_config(), self.device)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         self.run_dir = config.default_run_dir()
@@ -320,7 +322,8 @@ class LearnerService:
             fetcher.start()
         self.budget.restart_clock()
         log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {self.budget.describe()} "
-                  f"({cfg.algo}, preset: {shown(cfg.preset)}); run dir {self.run_dir}")
+                  f"({cfg.algo}, preset: {shown(cfg.preset)}) on {describe(self.device)}; run "
+                  f"dir {self.run_dir}")
         start = last_log = last_stats = last_checkpoint = time.monotonic()
         first_step = last_step = stats_step = self.global_step
         checkpointed_updates = self.learner.updates

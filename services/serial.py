@@ -28,6 +28,7 @@ from tpdeb.services.config.service import (
     ReplayServiceConfig,
 )
 from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.device import describe
 from tpdeb.services.envs import make_vector_env, space_dims
 from tpdeb.services.learner import LearnerService
 from tpdeb.services.net.memory import MemoryBus
@@ -102,7 +103,8 @@ class SerialRunner:
         learner.metrics.text("hyperparameters", hyperparameter_table(cfg))
         learner.budget.restart_clock()
         log.info(f"run dir {self.run_dir} | {cfg.env_id} | {learner.budget.describe()} | seed "
-                 f"{cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)}")
+                 f"{cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)} | learner on "
+                 f"{describe(learner.device)}")
         learner.publish_params(eager=True)
         self.actor.wait_for_params()
         start = last_log = time.perf_counter()

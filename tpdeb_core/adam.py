@@ -1,5 +1,6 @@
-"""Adam over one flat list of tensors: torch's fused CPU kernel where it has one (a single call
-for every parameter), its `_foreach` kernels otherwise.
+"""Adam over one flat list of tensors: torch's fused kernel where it has one (a single call
+for every parameter; CPU and CUDA), its `_foreach` kernels otherwise. The state lives on the
+parameters' device.
 
 `torch.optim.Adam` computes the same update, but its first `step()` imports TorchDynamo (and
 sympy with it: about 85 MiB of resident memory in a learner that is otherwise ~300 MiB) and
@@ -54,7 +55,7 @@ class Adam:
     def _share_step(self, value: float) -> None:
         # One step count for all parameters (the kernels take a list, one entry per parameter):
         # advancing it is one operation instead of one per tensor.
-        self.step_count = torch.tensor(float(value))
+        self.step_count = torch.tensor(float(value), device=self.params[0].device)
         self.step_counts = [self.step_count] * len(self.params)
 
     @property
@@ -130,5 +131,5 @@ class Adam:
         for i, p in enumerate(self.params):
             entry = state.get(int(group["params"][i]))
             for name, held in (("exp_avg", self.exp_avg), ("exp_avg_sq", self.exp_avg_sq)):
-                held[i] = (entry[name].detach().clone().to(p.dtype) if entry is not None
-                           else torch.zeros_like(p))
+                held[i] = (entry[name].detach().to(p.device, p.dtype, copy=True)
+                           if entry is not None else torch.zeros_like(p))

@@ -47,14 +47,20 @@ class Prepared:
 
 
 class Learner:
-    """Owns the model, the target policy and the optimiser; `step` is one gradient update."""
+    """Owns the model, the target policy and the optimiser; `step` is one gradient update.
 
-    def __init__(self, model: ActorCritic, config: LossConfig):
+    `device`: where the networks, the target policy and the optimiser's state live (the model
+    is moved there); each batch goes there once per update, in one transfer of its
+    observations. The targets (V-trace) and the closed-form gradient are numpy on the CPU."""
+
+    def __init__(self, model: ActorCritic, config: LossConfig,
+                 device: torch.device | str = "cpu"):
         refusal = (closed_form_refusal(config, model.policy.policy_std)
                    if config.loss_impl == "closed_form" else None)
         if refusal:
             raise ValueError(refusal)
-        self.model = model
+        self.device = torch.device(device)
+        self.model = model.to_device(self.device)
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
         # Held once: walking the module tree for them on every update costs more than the
@@ -104,6 +110,7 @@ class Learner:
         obs_mean, obs_inv_std = self.model.obs_affine()
         obs = torch.from_numpy(policy.normalize(f.obs, obs_mean, obs_inv_std,
                                                 self.model.obs_clip, NUMPY))  # [T+1, B, obs]
+        obs = obs.to(self.device)
         mean, log_std = self.model.policy(obs[:-1])
         values = self.model.value(obs)
         with torch.no_grad():
@@ -112,8 +119,8 @@ class Learner:
             target_logp = logp
             if self.config.clip_anchor == "target":
                 t_mean, t_log_std = self.target_policy(obs[:-1])
-                target_logp = policy.log_prob(t_mean.numpy(), t_log_std.numpy(), f.actions,
-                                              NUMPY)
+                target_logp = policy.log_prob(t_mean.numpy(force=True),
+                                              t_log_std.numpy(force=True), f.actions, NUMPY)
             rewards, discounts = self._returns(f, obs_mean, obs_inv_std)
             v = values.numpy(force=True)
         w = loss.replay_weights(weights, step_weights, f.rewards.shape[0])
@@ -131,7 +138,8 @@ class Learner:
         if len(f.trunc_t):
             final_obs = policy.normalize(f.trunc_obs, obs_mean, obs_inv_std, self.model.obs_clip,
                                          NUMPY)
-            final_values = self.model.value(torch.from_numpy(final_obs)).numpy()
+            final_values = self.model.value(
+                torch.from_numpy(final_obs).to(self.device)).numpy(force=True)
             not_term = ~f.terminated[f.trunc_t, f.trunc_b]
             np.add.at(rewards, (f.trunc_t, f.trunc_b), gamma * not_term * final_values)
         return rewards, discounts
@@ -151,11 +159,12 @@ class Learner:
             total.backward()
         else:
             grads, terms = closed_form.loss_and_gradients(
-                cfg, self.kl_coef, f, p.targets, p.mean.detach().numpy(),
-                p.log_std.detach().numpy(), p.values.detach().numpy(), p.logp)
-            torch.autograd.backward((p.mean, p.values), (torch.from_numpy(grads.mean),
-                                                         torch.from_numpy(grads.values)))
-            self.model.policy.log_std.grad = torch.from_numpy(grads.log_std)
+                cfg, self.kl_coef, f, p.targets, p.mean.numpy(force=True),
+                p.log_std.numpy(force=True), p.values.numpy(force=True), p.logp)
+            on = self.device
+            torch.autograd.backward((p.mean, p.values), (torch.from_numpy(grads.mean).to(on),
+                                                         torch.from_numpy(grads.values).to(on)))
+            self.model.policy.log_std.grad = torch.from_numpy(grads.log_std).to(on)
         grad_norm = self._clip_gradients(cfg.max_grad_norm)
         self.optimizer.step()
         if self.log_std_ceiling is not None:
@@ -173,7 +182,7 @@ class Learner:
         cfg, vs = self.config, p.targets.vs
         ratio = np.exp(terms.log_ratio)
         var_vs = sample_std(vs - mean_of(vs)) ** 2
-        residual = vs - p.values.detach().numpy()[:-1]
+        residual = vs - p.values.numpy(force=True)[:-1]
         explained = (1.0 - sample_std(residual - mean_of(residual)) ** 2 / var_vs if var_vs > 0
                      else 0.0)
         log_is_bound = math.log(cfg.rho_target_bar)
@@ -205,8 +214,11 @@ class Learner:
         over views of the gradients: a dot product per tensor costs less than torch's norm
         kernels' dispatch at this size."""
         grads = [p.grad for p in self.params]
-        flat = [g.numpy().ravel() for g in grads]
-        total = math.sqrt(sum(float(x @ x) for x in flat))
+        if self.device.type == "cpu":
+            flat = [g.numpy().ravel() for g in grads]
+            total = math.sqrt(sum(float(x @ x) for x in flat))
+        else:  # one reduction on the device, one number back
+            total = float(torch.linalg.vector_norm(torch.stack(torch._foreach_norm(grads))))
         scale = max_norm / (total + 1e-6)
         if scale < 1.0:
             torch._foreach_mul_(grads, scale)

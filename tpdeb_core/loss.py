@@ -78,25 +78,27 @@ def loss(cfg: LossConfig, kl_coef: float, batch, t: Targets, mean: torch.Tensor,
          log_std: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, LossTerms]:
     """L = L_pg + c_v·L_v − c_ent·H + λ_kl·L_kl on the networks' outputs (mean [T, B, A],
     log-std [A] or [T, B, A], values [T+1, B]); returns (L with its graph, the terms)."""
-    w = torch.from_numpy(t.weights)
+    def on(x) -> torch.Tensor:  # an array of the batch, where the networks are
+        return torch.as_tensor(x).to(mean.device)
+
+    w = on(t.weights)
     E = lambda x: (w * x).sum()  # noqa: E731  the weighted mean E_w[·] of every per-step term
     ops = TORCH
-    logp = policy.log_prob(mean, log_std, torch.from_numpy(batch.actions), ops)
+    logp = policy.log_prob(mean, log_std, on(batch.actions), ops)
     # 2. r_t = is_t · π_θ/μ: the clip is centred on the target policy (IMPACT) or on μ (PPO)
-    log_ratio = logp - torch.from_numpy(batch.behaviour_logp) + torch.as_tensor(t.log_is)
+    log_ratio = logp - on(batch.behaviour_logp) + on(t.log_is)
     ratio = torch.exp(log_ratio)
-    adv = torch.from_numpy(t.advantages)
+    adv = on(t.advantages)
     clipped = torch.clamp(ratio, 1.0 - cfg.clip_coef, 1.0 + cfg.clip_coef)
     policy_loss = -E(torch.min(ratio * adv, clipped * adv))
     # 3. KL(μ ‖ π_θ) from the stored behaviour mean and log-std
-    kl = E(policy.kl(torch.from_numpy(batch.behaviour_mean),
-                     torch.from_numpy(batch.behaviour_log_std), mean, log_std, ops))
+    kl = E(policy.kl(on(batch.behaviour_mean), on(batch.behaviour_log_std), mean, log_std, ops))
     # 4. the value regression to the V-trace targets, and the entropy
-    value_loss = 0.5 * E((values[:-1] - torch.from_numpy(t.vs)) ** 2)
+    value_loss = 0.5 * E((values[:-1] - on(t.vs)) ** 2)
     entropy = E(policy.entropy(log_std, ops))
     total = policy_loss + cfg.vf_coef * value_loss - cfg.ent_coef * entropy + kl_coef * kl
     return total, LossTerms(policy_loss.item(), value_loss.item(), entropy.item(), kl.item(),
-                            log_ratio.detach().numpy())
+                            log_ratio.numpy(force=True))
 
 
 def mean_of(x: np.ndarray) -> float:

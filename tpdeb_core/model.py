@@ -163,6 +163,19 @@ class ActorCritic(nn.Module):
         self.obs_rms = RunningMeanStd(obs_dim)
         self.ret_rms = RunningMeanStd(())
 
+    @property
+    def device(self) -> torch.device:
+        """Where the networks are (the normalisers' moments always stay on the CPU)."""
+        return self.value_layers[0][0].device
+
+    def to_device(self, device: torch.device | str) -> ActorCritic:
+        """Move the networks (policy and value) to `device`; the normalisers stay where they
+        are, read and merged in numpy. The layers held for the update stay the same
+        parameters (moved in place)."""
+        self.policy.to(device)
+        self.value_net.to(device)
+        return self
+
     def obs_affine(self) -> tuple[np.ndarray, np.ndarray]:
         """The observation normaliser's current (mean, 1/std) as float32 arrays."""
         rms = self.obs_rms
@@ -170,9 +183,11 @@ class ActorCritic(nn.Module):
                 inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon).astype(np.float32))
 
     def norm_obs(self, obs_raw: torch.Tensor) -> torch.Tensor:
+        """Normalised observations on the networks' device."""
         mean, inv_std = (torch.from_numpy(x) for x in self.obs_affine())
-        return policy.normalize(torch.as_tensor(obs_raw, dtype=torch.float32), mean, inv_std,
-                                self.obs_clip, TORCH)
+        obs = policy.normalize(torch.as_tensor(obs_raw, dtype=torch.float32), mean, inv_std,
+                               self.obs_clip, TORCH)
+        return obs.to(self.device)
 
     def reward_scale(self) -> float:
         """Multiplier for raw rewards: 1 / std of the discounted return."""
@@ -187,19 +202,19 @@ class ActorCritic(nn.Module):
         """Sample raw Gaussian actions for a batch of raw observations (numpy in, numpy out)."""
         obs = self.norm_obs(obs_raw)
         mean, log_std = self.policy(obs)
-        action, logp = policy.sample(mean, log_std, torch.randn(mean.shape, generator=generator),
-                                     TORCH)
-        return {"action": action.numpy(), "mean": mean.numpy(),
-                "log_std": log_std.detach().expand_as(mean).numpy(), "logp": logp.numpy(),
-                "value": self.value(obs).numpy()}
+        noise = torch.randn(mean.shape, generator=generator).to(mean.device)
+        action, logp = policy.sample(mean, log_std, noise, TORCH)
+        return {"action": action.numpy(force=True), "mean": mean.numpy(force=True),
+                "log_std": log_std.detach().expand_as(mean).numpy(force=True),
+                "logp": logp.numpy(force=True), "value": self.value(obs).numpy(force=True)}
 
     @torch.no_grad()
     def act_deterministic(self, obs_raw: np.ndarray) -> np.ndarray:
-        return self.policy(self.norm_obs(obs_raw))[0].numpy()
+        return self.policy(self.norm_obs(obs_raw))[0].numpy(force=True)
 
     @torch.no_grad()
     def values_of(self, obs_raw: np.ndarray) -> np.ndarray:
-        return self.value(self.norm_obs(obs_raw)).numpy()
+        return self.value(self.norm_obs(obs_raw)).numpy(force=True)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The state (parameters and normalisers) as numpy arrays, by state_dict name."""

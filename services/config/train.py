@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from tpdeb.services.config import ConfigError
+from tpdeb.services.device import check_device_setting
 from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig, closed_form_refusal
 from tpdeb.tpdeb_core.policy import POLICY_STDS
 from tpdeb.tpdeb_core.rate_limiter import RateLimiter
@@ -200,6 +201,9 @@ class LearnerSettings:
     statistics always travel in float64)"""
     torch_threads: int = 1
     """torch intra-op threads (1 leaves the other core to the environments)"""
+    device: str = "auto"
+    """auto | cpu | cuda | cuda:N: where the learner's networks train (auto: the first GPU
+    when torch sees one, else the CPU)"""
     anneal_log_std: bool = False
     """hold the global log-std under a ceiling that falls linearly from init_log_std to
     final_log_std over the run (less exploration noise late in training); the KL term reads
@@ -214,6 +218,8 @@ class LearnerSettings:
             (self.params_dtype in ("float32", "float16"), "params_dtype",
              "must be float32 or float16"),
             (self.torch_threads >= 1, "torch_threads", "must be ≥ 1"),
+            (check_device_setting(self.device) is None, "device",
+             check_device_setting(self.device) or ""),
         ])
 
 
