@@ -57,7 +57,8 @@ TOPICS: tuple[Topic, ...] = (
     Topic("params", "put", (m.Params,), ("learner",), (), priority="data_low",
           why="for monitors; latest wins, put only when someone subscribes"),
     Topic("spec", "query", (m.RunSpec,), ("replay",), ("learner", "actor", "monitor"),
-          why="peers refuse a run whose spec differs from theirs"),
+          why="peers refuse a run whose spec differs from theirs (env id and keyword "
+              "arguments, dims)"),
     Topic("join", "query", (m.JoinRequest, m.JoinReply), ("replay",), ("actor",),
           why="--actor-id auto: the lowest id no actor of the run holds"),
     Topic("control", "put", (m.Control,), ("learner",), ("replay", "actor", "monitor"),

@@ -153,7 +153,7 @@ def test_tpdeb_train_and_eval_run_a_users_env_from_its_directory(user_dir):
     env = {"PATH": f"{bin_dir}:/usr/bin:/bin", "HOME": str(user_dir)}
     train = subprocess.run(
         [str(bin_dir / "tpdeb-train"), "--env-id", "myenvs:Reach-v0", "--env-kwargs",
-         '{"size": 2.0}', "--total-timesteps", "2048", "--num-envs", "2", "--run-dir", "run",
+         '{"size": 2.0}', "--total-timesteps", "1024", "--num-envs", "2", "--run-dir", "run",
          "--preset", "none"], cwd=user_dir, env=env, capture_output=True, text=True, timeout=300)
     assert train.returncode == 0, train.stderr[-2000:]
     saved = (user_dir / "run" / "config.toml").read_text()
