@@ -1,0 +1,212 @@
+"""The learner on a GPU, and a cluster on a bigger machine: the first scaling curve.
+
+    python bench/gpu.py                      # ≤ 8 minutes, on a machine with a CUDA GPU
+    python bench/gpu.py --device cpu --seconds 1 --cluster-seconds 15 --actors 1 2  # a smoke run
+
+1. `Learner.step` on HalfCheetah-v5 batches (the preset's 8 fragments × 64 steps) with 64×64,
+   256×256 and 1024×1024 networks: updates/s on the device, and on the CPU at 1 torch thread
+   and at every core.
+2. `tpdeb-cluster` on HalfCheetah-v5 (its preset, the learner on the device) with 1, 2, 4, 8 and
+   14 actors × 4 envs, each trained for `--cluster-seconds` (`--train-for-seconds`): env steps/s
+   and updates/s over the run (from its end.json), and the CPU the replay server, the router,
+   the learner and the actors used per second of the run's wall-clock, start-up included (from
+   /proc, sampled every second).
+
+Prints the machine (CPU model and cores, GPU, torch) and markdown tables for BENCHMARKS; writes
+bench/out/gpu/results.json. These are timings: nothing else may run meanwhile.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import psutil
+import torch
+from procfs import cmdline, descendants, service_name
+from throughput import preset_config, sample_batches, timed_loop
+
+from tpdeb.services.device import describe, resolve_device
+from tpdeb.services.net.model_wire import model_for
+from tpdeb.tpdeb_core.learner import Learner
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench" / "out" / "gpu"
+SIZES = ((64, 64), (256, 256), (1024, 1024))
+
+
+def machine(device: torch.device) -> dict:
+    cpu = platform.processor() or "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return {"cpu": cpu, "cores": os.cpu_count(), "device": describe(device),
+            "torch": torch.__version__, "python": platform.python_version()}
+
+
+def updates_per_s(spec, config, fragments, batches, device, threads: int,
+                  seconds: float) -> float:
+    torch.set_num_threads(threads)
+    torch.manual_seed(config.seed)
+    learner = Learner(model_for(spec), config.loss_config(), device)
+    for fragment in fragments:
+        learner.observe(fragment)
+    b = config.batch_fragments
+    keys, weights = list(range(b)), torch.ones(b).numpy()
+    from_prioritized = (torch.arange(b) < round(config.zeta * b)).numpy()
+    state = {"i": 0}
+
+    def step():
+        state["i"] += 1
+        learner.step(batches[state["i"] % len(batches)], keys, weights, from_prioritized)
+
+    calls, elapsed = timed_loop(step, seconds)
+    return calls / elapsed
+
+
+def learner_rates(args, device) -> list[dict]:
+    rows = []
+    for hidden in SIZES:
+        config = preset_config(args.env_id, 4, args.seed)
+        config.hidden_sizes = hidden
+        spec, fragments, batches = sample_batches(config, count=16)
+        row = {"hidden": "×".join(map(str, hidden)), "batch_steps": config.batch_steps}
+        row["device"] = updates_per_s(spec, config, fragments, batches, device, 1, args.seconds)
+        row["cpu_1_thread"] = updates_per_s(spec, config, fragments, batches, "cpu", 1,
+                                            args.seconds)
+        row["cpu_all_threads"] = updates_per_s(spec, config, fragments, batches, "cpu",
+                                               os.cpu_count() or 1, args.seconds)
+        print(f"[gpu] {row['hidden']}: {row['device']:,.0f} updates/s on {device}, "
+              f"{row['cpu_1_thread']:,.0f} on 1 CPU thread, {row['cpu_all_threads']:,.0f} on "
+              f"{os.cpu_count()}", flush=True)
+        rows.append(row)
+    return rows
+
+
+class CpuSampler(threading.Thread):
+    """CPU seconds of each service below the cluster, read every second (a process's last
+    reading stands when it exits)."""
+
+    def __init__(self, root: int):
+        super().__init__(daemon=True)
+        self.root, self.done = root, threading.Event()
+        self.seconds: dict[int, tuple[str, float]] = {}
+
+    def run(self) -> None:
+        while not self.done.wait(1.0):
+            for pid in descendants(self.root):
+                name = service_name(cmdline(pid))
+                if name is None:
+                    continue
+                try:
+                    times = psutil.Process(pid).cpu_times()
+                except psutil.Error:
+                    continue
+                self.seconds[pid] = (name, times.user + times.system)
+
+    def by_role(self) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for name, seconds in self.seconds.values():
+            role = "actors" if name.startswith("actor") else name
+            out[role] = out.get(role, 0.0) + seconds
+        return out
+
+
+def cluster_run(args, actors: int) -> dict:
+    run_dir = OUT / "runs" / f"{actors}actors"
+    cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", args.env_id,
+           "--total-timesteps", str(10**9), "--train-for-seconds", str(args.cluster_seconds),
+           "--actors", str(actors), "--num-envs", "4", "--seed", str(args.seed),
+           "--run-dir", str(run_dir), "--set", f"device={args.device}"]
+    subprocess.run(["rm", "-rf", str(run_dir)], check=False)
+    run_dir.parent.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
+    with (OUT / f"cluster_{actors}actors.log").open("w") as log:
+        proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        sampler = CpuSampler(proc.pid)
+        sampler.start()
+        try:
+            code = proc.wait(args.cluster_seconds + 300)
+        except BaseException:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(60)
+            raise
+        finally:
+            sampler.done.set()
+            sampler.join(5)
+    wall = time.perf_counter() - start
+    end_file = run_dir / "end.json"
+    end = json.loads(end_file.read_text()) if end_file.is_file() else {}
+    train_s = end.get("train_elapsed_s") or float("nan")
+    row = {"actors": actors, "exit_code": code, "wall_s": round(wall, 1),
+           "env_steps_per_s": end.get("global_step", 0) / train_s,
+           "updates_per_s": end.get("updates", 0) / train_s,
+           "cpu_per_s": {k: round(v / wall, 2) for k, v in sampler.by_role().items()}}
+    cpu = row["cpu_per_s"]
+    print(f"[gpu] {actors} actors: {row['env_steps_per_s']:,.0f} env steps/s, "
+          f"{row['updates_per_s']:,.0f} updates/s; CPU/s replay {cpu.get('replay', 0):.2f}, "
+          f"router {cpu.get('router', 0):.2f}, learner {cpu.get('learner', 0):.2f}, actors "
+          f"{cpu.get('actors', 0):.2f} (exit {code})", flush=True)
+    return row
+
+
+def tables(result: dict) -> str:
+    m = result["machine"]
+    out = [f"Machine: {m['cpu']}, {m['cores']} cores; learner device {m['device']}; torch "
+           f"{m['torch']}.", "", "| network | updates/s on the device | CPU, 1 thread | CPU, "
+           f"{m['cores']} threads |", "|---|---|---|---|"]
+    out += [f"| {r['hidden']} | {r['device']:,.0f} | {r['cpu_1_thread']:,.0f} | "
+            f"{r['cpu_all_threads']:,.0f} |" for r in result["learner"]]
+    out += ["", "| actors × 4 envs | env steps/s | updates/s | CPU/s replay | router | learner "
+            "| actors |", "|---|---|---|---|---|---|---|"]
+    for r in result["cluster"]:
+        c = r["cpu_per_s"]
+        out.append(f"| {r['actors']} | {r['env_steps_per_s']:,.0f} | {r['updates_per_s']:,.0f} "
+                   f"| {c.get('replay', 0):.2f} | {c.get('router', 0):.2f} | "
+                   f"{c.get('learner', 0):.2f} | {c.get('actors', 0):.2f} |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cuda", help="the learner's device (cuda, cuda:N, "
+                        "or cpu for a smoke run)")
+    parser.add_argument("--env-id", default="HalfCheetah-v5")
+    parser.add_argument("--seconds", type=float, default=5.0,
+                        help="each updates/s measurement")
+    parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 14])
+    parser.add_argument("--cluster-seconds", type=float, default=45.0,
+                        help="training seconds of each cluster run")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args()
+    device = resolve_device(args.device)
+    OUT.mkdir(parents=True, exist_ok=True)
+    result = {"machine": machine(device), "args": vars(args)}
+    print(f"[gpu] {result['machine']}", flush=True)
+    result["learner"] = learner_rates(args, device)
+    result["cluster"] = []
+    for actors in args.actors:
+        result["cluster"].append(cluster_run(args, actors))
+        (OUT / "results.json").write_text(json.dumps(result, indent=1))
+    result["table_markdown"] = tables(result)
+    (OUT / "results.json").write_text(json.dumps(result, indent=1))
+    print()
+    print(result["table_markdown"])
+
+
+if __name__ == "__main__":
+    main()
