@@ -20,6 +20,12 @@ from tpdeb.services.plot import band, label_axes, save, smooth
 # Table 2 thresholds.
 THRESHOLDS = {"HalfCheetah-v5": 5819, "Hopper-v5": 2410, "Walker2d-v5": 3479, "Ant-v5": 1327,
               "Humanoid-v5": 716, "Swimmer-v5": 282}
+# SAC's published returns at 1M env steps, the per-step moonshot and the race's goal: CleanRL's
+# SAC (training return, v4, 3 seeds) where it reports the task, rl-baselines3-zoo's SAC model
+# (evaluation, v3) elsewhere.
+SAC_1M = {"HalfCheetah-v5": (9635, "CleanRL"), "Hopper-v5": (2310, "CleanRL"),
+          "Walker2d-v5": (3591, "CleanRL"), "Ant-v5": (4616, "zoo"),
+          "Humanoid-v5": (4996, "CleanRL"), "Swimmer-v5": (346, "zoo")}
 NAMES = {"tpdeb": "TPDEB", "impact": "IMPACT", "ppo-per": "PPO+PER"}
 WINDOW = 20
 BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
@@ -103,6 +109,26 @@ def bar_table(results: list[dict], envs: list[str]) -> str:
         evals = [r["eval"]["mean_return"] for r in runs if r.get("eval")]
         out.append(f"| {env_id} | {bar:,} | {against(evals, bar) if evals else '—'} | "
                    f"{against([r['final_return'] for r in runs], bar)} | {len(runs)} |")
+    return "\n".join(out)
+
+
+def sac_table(results: list[dict], envs: list[str]) -> str:
+    """How far TPDEB is from SAC's published 1M return per task, like for like: against
+    CleanRL's training return TPDEB's training return, against the zoo's deterministic model
+    TPDEB's evaluation return."""
+    out = ["Toward SAC at 1M env steps (mean over seeds; the gap in per cent):\n",
+           "| task | SAC at 1M | source | TPDEB, like for like | seeds |", "|---" * 5 + "|"]
+    for env_id in envs:
+        runs = [r for r in results if r["env_id"] == env_id and r["algo"] == "tpdeb"]
+        if not runs or env_id not in SAC_1M:
+            continue
+        bar, source = SAC_1M[env_id]
+        if source == "CleanRL":
+            ours, kind = [r["final_return"] for r in runs], "training"
+        else:
+            ours, kind = [r["eval"]["mean_return"] for r in runs if r.get("eval")], "evaluation"
+        out.append(f"| {env_id} | {bar:,} | {source} ({kind}) | "
+                   f"{against(ours, bar) if ours else '—'} | {len(ours)} |")
     return "\n".join(out)
 
 
@@ -229,7 +255,7 @@ def report(directory: Path, envs: list[str], algos: list[str], update_doc: bool 
         return
     present = [e for e in envs if any(r["env_id"] == e for r in results)]
     text = "\n\n".join([tables(results, present, algos), bar_table(results, present),
-                         claims(results, present)])
+                         sac_table(results, present), claims(results, present)])
     for env_id in present:
         image = ROOT / "docs" / "img" / tag / f"{env_id}.png"
         figure(results, env_id, algos, image)

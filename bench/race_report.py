@@ -12,16 +12,11 @@ import statistics
 from pathlib import Path
 
 import numpy as np
-from paper_report import cell, replace_between, seeds  # noqa: I001  (bench/ is on sys.path)
+from paper_report import SAC_1M, cell, replace_between, seeds  # noqa: I001  (bench/ is on sys.path)
 from runs import ROOT
 
 from tpdeb.services.plot import band, save, smooth
 
-# SAC's published returns at 1M env steps, the race's goal: CleanRL's SAC (training return, v4,
-# 3 seeds) where it reports the task, rl-baselines3-zoo's SAC model (evaluation, v3) elsewhere.
-SAC_1M = {"HalfCheetah-v5": (9635, "CleanRL"), "Hopper-v5": (2310, "CleanRL"),
-          "Walker2d-v5": (3591, "CleanRL"), "Ant-v5": (4616, "zoo"),
-          "Humanoid-v5": (4996, "CleanRL"), "Swimmer-v5": (346, "zoo")}
 SYSTEMS = {"tpdeb": "TPDEB", "sb3-sac": "SB3 SAC (zoo)", "sb3-ppo": "SB3 PPO (zoo)"}
 WINDOW = 20  # episodes in the smoothed curves
 GRID_S = 10.0

@@ -82,3 +82,13 @@ def test_bar_table_gives_tpdeb_gap_to_each_tasks_bar():
     rows = [line for line in table.splitlines() if line.startswith("| ") and "-v5" in line]
     assert rows == ["| Hopper-v5 | 2,410 | 2,410 (+0%) | 2,410 (+0%) | 3 |",
                     "| Ant-v5 | 1,327 | 2,654 (+100%) | 2,654 (+100%) | 3 |"]  # no Swimmer runs
+
+
+def test_the_sac_table_compares_like_for_like():
+    results = grid({("Hopper-v5", "tpdeb"): 2000, ("Ant-v5", "tpdeb"): 4000})
+    for r in results:  # evaluation 1,000 above training
+        r["eval"] = {"mean_return": r["final_return"] + 1000}
+    text = paper_report.sac_table(results, ["Hopper-v5", "Ant-v5"])
+    # CleanRL reports training returns, the zoo a deterministic model's
+    assert "| Hopper-v5 | 2,310 | CleanRL (training) | 2,012 (-13%) | 3 |" in text
+    assert "| Ant-v5 | 4,616 | zoo (evaluation) | 5,012 (+9%) | 3 |" in text
