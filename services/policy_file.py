@@ -27,6 +27,7 @@ from tpdeb.tpdeb_core.policy import (
     LOG_STD_HEAD,
     MEAN_NET,
     NUMPY,
+    dims_of,
     gaussian,
     normalize,
     numpy_layer,
@@ -159,10 +160,7 @@ def from_checkpoint(path: Path) -> Policy:
     env_id = spec.get("env_id") or config.get("env_id")
     if not env_id:
         raise PolicyError(f"{path}: the checkpoint does not say which env it was trained on")
-    weight = model[f"{MEAN_NET}.0.weight"]
-    obs_dim = int(weight.shape[1])
-    act_dim = int(model[LOG_STD].shape[0] if LOG_STD in model
-                  else model[f"{LOG_STD_HEAD}.bias"].shape[0])
+    obs_dim, act_dim, _ = dims_of(model)
     low, high = spec.get("action_low"), spec.get("action_high")
     if low is None or high is None:  # checkpoints from before they were recorded
         low, high = env_bounds(env_id, config.get("env_kwargs", ""), path)

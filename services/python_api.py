@@ -78,9 +78,10 @@ def settings_for(env_id: str, total_timesteps: int, seed: int, train_for_seconds
                  run_dir: str | os.PathLike | None, settings: dict):
     """The run's validated TrainConfig (preset included), or TrainError naming the setting."""
     from tpdeb.services.config import ConfigError
+    from tpdeb.services.config.train import TrainConfig
     from tpdeb.services.launcher.plan import coerce_train
 
-    names = {f.name for f in dataclasses.fields(_train_config())}
+    names = {f.name for f in dataclasses.fields(TrainConfig)}
     for key in settings:
         if key not in names:
             near = difflib.get_close_matches(key, names, n=1)
@@ -101,12 +102,6 @@ def settings_for(env_id: str, total_timesteps: int, seed: int, train_for_seconds
     if not config.run_dir:
         config.run_dir = str(config.default_run_dir())
     return config
-
-
-def _train_config():
-    from tpdeb.services.config.train import TrainConfig
-
-    return TrainConfig
 
 
 def _text(value) -> str:
