@@ -7,7 +7,8 @@
    256×256 and 1024×1024 networks: updates/s on the device, and on the CPU at 1 torch thread
    and at every core.
 2. `tpdeb-cluster` on HalfCheetah-v5 (its preset, the learner on the device) with 1, 2, 4, 8 and
-   14 actors × 4 envs, each trained for `--cluster-seconds` (`--train-for-seconds`): env steps/s
+   14 actors × 4 envs (and 14 again with the learner on the CPU, for comparison), each trained
+   for `--cluster-seconds` (`--train-for-seconds`): env steps/s
    and updates/s over the run (from its end.json), and the CPU the replay server, the router,
    the learner and the actors used per second of the run's wall-clock, start-up included (from
    /proc, sampled every second).
@@ -124,16 +125,16 @@ class CpuSampler(threading.Thread):
         return out
 
 
-def cluster_run(args, actors: int) -> dict:
-    run_dir = OUT / "runs" / f"{actors}actors"
+def cluster_run(args, actors: int, device: str) -> dict:
+    run_dir = OUT / "runs" / f"{actors}actors-{device}"
     cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", args.env_id,
            "--total-timesteps", str(10**9), "--train-for-seconds", str(args.cluster_seconds),
            "--actors", str(actors), "--num-envs", "4", "--seed", str(args.seed),
-           "--run-dir", str(run_dir), "--set", f"device={args.device}"]
+           "--run-dir", str(run_dir), "--set", f"device={device}"]
     subprocess.run(["rm", "-rf", str(run_dir)], check=False)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    with (OUT / f"cluster_{actors}actors.log").open("w") as log:
+    with (OUT / f"cluster_{actors}actors-{device}.log").open("w") as log:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)
         sampler = CpuSampler(proc.pid)
@@ -151,12 +152,12 @@ def cluster_run(args, actors: int) -> dict:
     end_file = run_dir / "end.json"
     end = json.loads(end_file.read_text()) if end_file.is_file() else {}
     train_s = end.get("train_elapsed_s") or float("nan")
-    row = {"actors": actors, "exit_code": code, "wall_s": round(wall, 1),
+    row = {"actors": actors, "device": device, "exit_code": code, "wall_s": round(wall, 1),
            "env_steps_per_s": end.get("global_step", 0) / train_s,
            "updates_per_s": end.get("updates", 0) / train_s,
            "cpu_per_s": {k: round(v / wall, 2) for k, v in sampler.by_role().items()}}
     cpu = row["cpu_per_s"]
-    print(f"[gpu] {actors} actors: {row['env_steps_per_s']:,.0f} env steps/s, "
+    print(f"[gpu] {actors} actors, learner on {device}: {row['env_steps_per_s']:,.0f} env steps/s, "
           f"{row['updates_per_s']:,.0f} updates/s; CPU/s replay {cpu.get('replay', 0):.2f}, "
           f"router {cpu.get('router', 0):.2f}, learner {cpu.get('learner', 0):.2f}, actors "
           f"{cpu.get('actors', 0):.2f} (exit {code})", flush=True)
@@ -170,11 +171,12 @@ def tables(result: dict) -> str:
            f"{m['cores']} threads |", "|---|---|---|---|"]
     out += [f"| {r['hidden']} | {r['device']:,.0f} | {r['cpu_1_thread']:,.0f} | "
             f"{r['cpu_all_threads']:,.0f} |" for r in result["learner"]]
-    out += ["", "| actors × 4 envs | env steps/s | updates/s | CPU/s replay | router | learner "
-            "| actors |", "|---|---|---|---|---|---|---|"]
+    out += ["", "| actors × 4 envs | learner | env steps/s | updates/s | CPU/s replay | router "
+            "| learner | actors |", "|---|---|---|---|---|---|---|---|"]
     for r in result["cluster"]:
         c = r["cpu_per_s"]
-        out.append(f"| {r['actors']} | {r['env_steps_per_s']:,.0f} | {r['updates_per_s']:,.0f} "
+        out.append(f"| {r['actors']} | {r['device']} | {r['env_steps_per_s']:,.0f} | "
+                   f"{r['updates_per_s']:,.0f} "
                    f"| {c.get('replay', 0):.2f} | {c.get('router', 0):.2f} | "
                    f"{c.get('learner', 0):.2f} | {c.get('actors', 0):.2f} |")
     return "\n".join(out)
@@ -189,7 +191,9 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=5.0,
                         help="each updates/s measurement")
     parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 14])
-    parser.add_argument("--cluster-seconds", type=float, default=45.0,
+    parser.add_argument("--cpu-actors", type=int, nargs="*", default=[14],
+                        help="cluster runs repeated with the learner on the CPU, for comparison")
+    parser.add_argument("--cluster-seconds", type=float, default=40.0,
                         help="training seconds of each cluster run")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
@@ -199,8 +203,10 @@ def main() -> None:
     print(f"[gpu] {result['machine']}", flush=True)
     result["learner"] = learner_rates(args, device)
     result["cluster"] = []
-    for actors in args.actors:
-        result["cluster"].append(cluster_run(args, actors))
+    runs = [(n, args.device) for n in args.actors] + [(n, "cpu") for n in args.cpu_actors
+                                                       if args.device != "cpu"]
+    for actors, device_name in runs:
+        result["cluster"].append(cluster_run(args, actors, device_name))
         (OUT / "results.json").write_text(json.dumps(result, indent=1))
     result["table_markdown"] = tables(result)
     (OUT / "results.json").write_text(json.dumps(result, indent=1))
