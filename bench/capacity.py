@@ -3,6 +3,7 @@ measured on this machine with synthetic actors instead of environments.
 
     python bench/capacity.py                          # HalfCheetah-v5 fragments, ~6 minutes
     python bench/capacity.py --seconds 5 --actors 1   # a quick look
+    python bench/capacity.py --report docs/data/capacity/*.json   # medians over kept runs
 
 1. Replay ingest ceiling: a router and a replay server (real processes, the replay a client of
    the router as in a cluster) and 1, 2, 4 synthetic actors, each a process that sends real
@@ -319,6 +320,44 @@ def plan_table(result: dict) -> str:
     return "\n".join(out)
 
 
+def combine(results: list[dict]) -> dict:
+    """One result of medians over runs: each run's best sender count for the replay (WAL on and
+    off) and the router, the learner's updates/s per size, each task's acting rate."""
+    from statistics import median
+
+    def best(run: dict, part: str, key: str, **match) -> float:
+        return max(r[key] for r in run[part] if all(r[k] == v for k, v in match.items()))
+
+    ingest = [{"persist": persist, "env_steps_per_s": median(
+        best(r, "ingest", "env_steps_per_s", persist=persist) for r in results),
+        "runs": [best(r, "ingest", "env_steps_per_s", persist=persist) for r in results]}
+        for persist in (True, False)]
+    forwarding = [best(r, "forwarding", "forwarded_per_s") for r in results]
+    learner = [dict(row, updates_per_s=median(
+        x["updates_per_s"] for r in results for x in r["learner"] if x["hidden"] == row["hidden"]))
+        for row in results[0]["learner"]]
+    acting = {env_id: dict(task, env_steps_per_s=median(
+        r["acting"][env_id]["env_steps_per_s"] for r in results))
+        for env_id, task in results[0]["acting"].items()}
+    return {"runs": len(results), "ingest": ingest, "learner": learner, "acting": acting,
+            "forwarding": {"per_s": median(forwarding), "runs": forwarding}}
+
+
+def report(paths: list[str]) -> None:
+    combined = combine([json.loads(Path(p).read_text()) for p in paths])
+    for row in combined["ingest"]:
+        print(f"replay ingest, WAL {'on' if row['persist'] else 'off'}: median "
+              f"{row['env_steps_per_s']:,.0f} env steps/s (runs: "
+              f"{', '.join(f'{x:,.0f}' for x in row['runs'])})")
+    fwd = combined["forwarding"]
+    print(f"router forwarding: median {fwd['per_s']:,.0f} fragments/s (runs: "
+          f"{', '.join(f'{x:,.0f}' for x in fwd['runs'])})")
+    for row in combined["learner"]:
+        print(f"learner {row['hidden']}: median {row['updates_per_s']:,.0f} updates/s")
+    print()
+    print(plan_table(combined))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -329,6 +368,8 @@ def main() -> None:
                         help="fragments in flight per synthetic actor (an actor's 2 × 4 envs)")
     parser.add_argument("--startup-s", type=float, default=4.0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--report", nargs="+", metavar="RESULTS",
+                        help="no runs: medians over these results.json files and the plan")
     # the children's roles
     parser.add_argument("--synthetic-actor", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--counting-subscriber", action="store_true", help=argparse.SUPPRESS)
@@ -340,6 +381,8 @@ def main() -> None:
         return synthetic_actor(args)
     if args.counting_subscriber:
         return counting_subscriber(args)
+    if args.report:
+        return report(args.report)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
     OUT.mkdir(parents=True, exist_ok=True)
     result = {"cores": os.cpu_count(), "env_id": args.env_id, "args": vars(args),
