@@ -114,7 +114,7 @@ class LearnerService:
             log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
                       f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
-        self.metrics = MetricsWriter(self.run_dir)
+        self.metrics = MetricsWriter(self.run_dir, log)
         self.log_bad = rate_limited(log)
         self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
         self.stats_inbox: queue.Queue = queue.Queue()

@@ -5,10 +5,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import math
+import os
+import socket
+import struct
+import time
 from pathlib import Path
 
-FLUSH_S = 10.0  # TensorBoard events reach the disk at least this often
+from tpdeb.services.store.diskio import AppendFile, DiskGuard
+
+FLUSH_ROWS = 256  # rows held in memory at most between two flushes
 
 
 def hyperparameter_table(config) -> str:
@@ -20,38 +27,85 @@ def hyperparameter_table(config) -> str:
 class MetricsWriter:
     """Writes metrics.jsonl and TensorBoard events. Only the processes that train write them
     (the learner, tpdeb-train): tensorboardX is imported here, not at module level, because it
-    loads torch, and tools that only read metrics (tpdeb-plot) must not."""
+    loads torch, and tools that only read metrics (tpdeb-plot) must not.
 
-    def __init__(self, run_dir: str | Path):
+    Rows and events are held in memory and appended at `flush` (and every `FLUSH_ROWS` rows),
+    each file by whole writes (`AppendFile`): a full disk leaves no half line or half record,
+    and costs the rows written meanwhile, said once per outage (`DiskGuard`), never the run.
+    The events are written here, not by tensorboardX's writer thread, which dies on the first
+    refused write and then blocks its caller for good once its queue is full."""
+
+    def __init__(self, run_dir: str | Path, log: logging.Logger | None = None):
+        from tensorboardX.crc32c import crc32c
+        from tensorboardX.proto.event_pb2 import Event
+        from tensorboardX.proto.summary_pb2 import Summary
+
+        self._crc32c, self._Event, self._Summary = crc32c, Event, Summary
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        log = log or logging.getLogger("tpdeb")
         path = self.run_dir / "metrics.jsonl"
         _drop_torn_line(path)
         # Append: a restarted (resumed) process continues the file its predecessor wrote.
-        self._jsonl = open(path, "a")  # noqa: SIM115
-        from tensorboardX import SummaryWriter
-
-        self._events = SummaryWriter(str(self.run_dir), flush_secs=FLUSH_S)
+        self._jsonl = AppendFile(path)
+        self._events_path = self.run_dir / (f"events.out.tfevents.{int(time.time())}."
+                                            f"{socket.gethostname()}.{os.getpid()}")
+        self._events_file: AppendFile | None = None
+        self._rows: list[str] = []
+        self._events: list[bytes] = []
+        self.rows_guard = DiskGuard("metrics rows", path, log)
+        self.events_guard = DiskGuard("TensorBoard events", self._events_path, log)
 
     def log(self, global_step: int, values: dict[str, float]) -> None:
         clean = {k: float(v) for k, v in values.items() if v is not None and math.isfinite(v)}
         if not clean:
             return
-        self._jsonl.write(json.dumps({"global_step": int(global_step), **clean}) + "\n")
-        for tag, value in clean.items():
-            self._events.add_scalar(tag, value, int(global_step))
+        self._rows.append(json.dumps({"global_step": int(global_step), **clean}) + "\n")
+        summary = self._Summary(value=[self._Summary.Value(tag=tag, simple_value=value)
+                                       for tag, value in clean.items()])
+        self._events.append(self._record(self._Event(wall_time=time.time(),
+                                                     step=int(global_step), summary=summary)))
+        if len(self._rows) >= FLUSH_ROWS:
+            self.flush()
 
     def text(self, tag: str, text: str) -> None:
-        self._events.add_text(tag, text)
+        from tensorboardX.summary import text as text_summary
+
+        self._events.append(self._record(self._Event(wall_time=time.time(),
+                                                     summary=text_summary(tag, text))))
+
+    def _record(self, event) -> bytes:
+        """One TFRecord: length, its masked CRC-32C, the event, the event's masked CRC-32C."""
+        data = event.SerializeToString()
+        header = struct.pack("<Q", len(data))
+        return (header + struct.pack("<I", _masked(self._crc32c(header))) + data
+                + struct.pack("<I", _masked(self._crc32c(data))))
 
     def flush(self) -> None:
-        self._jsonl.flush()
-        self._events.flush()
+        rows, self._rows = "".join(self._rows).encode(), []
+        events, self._events = b"".join(self._events), []
+        if rows:
+            self.rows_guard.attempt(lambda: self._jsonl.append(rows))
+        if events:
+            self.events_guard.attempt(lambda: self._append_events(events))
+
+    def _append_events(self, data: bytes) -> None:
+        if self._events_file is None:
+            self._events_file = AppendFile(self._events_path)
+        if self._events_file.path.stat().st_size == 0:  # a new file starts with its version
+            data = self._record(self._Event(wall_time=time.time(),
+                                            file_version="brain.Event:2")) + data
+        self._events_file.append(data)
 
     def close(self) -> None:
         self.flush()
         self._jsonl.close()
-        self._events.close()
+        if self._events_file is not None:
+            self._events_file.close()
+
+
+def _masked(crc: int) -> int:
+    return (((crc >> 15) | (crc << 17)) + 0xA282EAD8) & 0xFFFFFFFF
 
 
 def _drop_torn_line(path: Path) -> None:

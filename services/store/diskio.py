@@ -1,0 +1,82 @@
+"""Writing to a disk that may refuse: files that grow only by whole writes, and a guard that turns
+a refused write (ENOSPC, EDQUOT, EIO, ...) into one line and a later retry instead of a dead
+writer.
+
+A long run meets a full disk sooner or later (a neighbour's job, a forgotten dump). What the
+run writes besides its checkpoints — metrics rows, TensorBoard events — is worth less than the
+training, so a writer that cannot write says so once with the path, goes on without writing,
+tries again after `retry_s`, and says so when the disk takes writes again.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+
+class AppendFile:
+    """A file that grows only by whole writes: a write the disk refuses part-way is cut back
+    off, so the file never ends in half a line or half a record."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._fd = os.open(self.path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+
+    def append(self, data: bytes, sync: bool = False) -> None:
+        size = os.fstat(self._fd).st_size
+        try:
+            view = memoryview(data)
+            while view:
+                view = view[os.write(self._fd, view):]
+            if sync:
+                os.fsync(self._fd)
+        except OSError:
+            with contextlib.suppress(OSError):
+                os.ftruncate(self._fd, size)
+            raise
+
+    def close(self) -> None:
+        if self._fd >= 0:
+            os.close(self._fd)
+            self._fd = -1
+
+
+class DiskGuard:
+    """Runs a write; if the disk refuses it, says so once (what, the path, why), skips the
+    writes that come for `retry_s`, then tries again; says when a write works again and how
+    many were skipped. `clock` is injectable for tests."""
+
+    def __init__(self, what: str, path: str | Path, log: logging.Logger, retry_s: float = 5.0,
+                 clock: Callable[[], float] = time.monotonic):
+        self.what, self.path, self.log, self.retry_s, self.clock = what, path, log, retry_s, clock
+        self.failing = False
+        self.skipped = 0
+        self.failures = 0
+        self._next_try = 0.0
+
+    def attempt(self, write: Callable[[], None]) -> bool:
+        """True when `write` ran and succeeded; False when it was refused or skipped."""
+        if self.failing and self.clock() < self._next_try:
+            self.skipped += 1
+            return False
+        try:
+            write()
+        except OSError as exc:
+            self.failures += 1
+            self.skipped += 1
+            if not self.failing:
+                self.log.warning(f"{self.what} not written: {self.path}: "
+                                 f"{exc.strerror or exc}; training goes on without it, "
+                                 f"trying again every {self.retry_s:g} s")
+            self.failing = True
+            self._next_try = self.clock() + self.retry_s
+            return False
+        if self.failing:
+            self.log.info(f"{self.what}: {self.path} takes writes again ({self.skipped} "
+                          f"skipped meanwhile)")
+            self.failing, self.skipped = False, 0
+        return True
