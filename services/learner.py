@@ -71,6 +71,7 @@ from tpdeb.services.store.checkpoint import (
     spec_problem,
     write_atomic,
 )
+from tpdeb.services.store.diskio import DiskGuard
 from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
 from tpdeb.tpdeb_core.learner import Learner
 from tpdeb.tpdeb_core.model import state_arrays
@@ -115,6 +116,12 @@ class LearnerService:
                       f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.metrics = MetricsWriter(self.run_dir, log)
+        self.checkpoint_guard = DiskGuard(
+            "periodic checkpoint", checkpoint_dir(self.run_dir), log, retry_s=0.0,
+            consequence="training goes on and the previous checkpoint stays valid; the next is "
+                        f"tried in {config.checkpoint_interval_s:g} s")
+        self.mark_guard = DiskGuard("parameter-version mark", self.versions.path, log,
+                                    consequence="actors keep their parameters until it is")
         self.log_bad = rate_limited(log)
         self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
         self.stats_inbox: queue.Queue = queue.Queue()
@@ -189,18 +196,19 @@ class LearnerService:
                              self.param_version(), self.spec, self.budget.elapsed())
 
     def periodic_checkpoint(self) -> Path | None:
-        started = time.perf_counter()
-        try:
-            path = self.save_checkpoint(PERIODIC)
+        """A full disk must not end the training: the previous checkpoint stays valid (a
+        checkpoint is written beside it and renamed), said once per outage."""
+        started, written = time.perf_counter(), []
+
+        def write() -> None:
+            written.append(self.save_checkpoint(PERIODIC))
             rotate(checkpoint_dir(self.run_dir), self.config.keep_checkpoints)
-        except OSError as exc:  # a full disk must not end the training; say so and retry later
-            self.log_bad("checkpoint", f"periodic checkpoint not written ({exc}); training "
-                                       "goes on, the next one is tried in "
-                                       f"{self.config.checkpoint_interval_s:g} s")
+
+        if not self.checkpoint_guard.attempt(write):
             return None
         self.checkpoint_s += time.perf_counter() - started
         self.checkpoints_written += 1
-        return path
+        return written[0]
 
     # -- parameters down
     def publish_params(self, eager: bool = False) -> None:
@@ -208,7 +216,10 @@ class LearnerService:
         key for any monitor). Encoded only when someone takes it: actors ask once per fragment,
         far less often than the learner updates."""
         version = self.param_version()
-        self.versions.reserve(version)  # on disk before any actor can hold this version
+        # on disk before any actor can hold this version; if the disk refuses, actors keep the
+        # version they have until it takes the mark
+        if not self.mark_guard.attempt(lambda: self.versions.reserve(version)):
+            return
         with self.params_lock:
             self.current_version = version
         if eager:

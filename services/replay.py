@@ -7,10 +7,13 @@ a queue until the rate limiter allows them (or `sample_wait_s` passes, then they
 ready" reply). With `persist` on, a fragment is acknowledged only once it is in the write-ahead
 log on disk, and snapshots of the whole state are written in the background
 (services/store/persistence.py): a restarted server restores everything it ever acknowledged.
+A disk that refuses the log (full) stops acknowledging and taking in fragments, not the server:
+it says so once, keeps serving samples, and goes on when the log takes writes again.
 """
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import queue
@@ -76,6 +79,7 @@ class SeqWindow:
 
 
 SNAPSHOT_FORMAT = 2  # of what snapshot() saves (2: msgpack state); a restore refuses any other
+DISK_RETRY_S = 5.0  # while the log cannot be written, how often it is tried again
 MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
 
 
@@ -168,6 +172,7 @@ class ReplayServer:
         self.restored = ""  # what restore() found, for the start-up line
         self.last_snapshot = time.monotonic()
         self.last_stats = 0.0
+        self.disk_full, self.disk_retry_at = False, 0.0
         self._declare()
 
     def _declare(self) -> None:
@@ -208,17 +213,18 @@ class ReplayServer:
                 self._handle(kind, item)
         except queue.Empty:
             pass
-        self._ingest_pending()
+        if not self.disk_full:
+            self._ingest_pending()
         self._serve_waiting()
-        if self.persistence is not None:
-            self.persistence.sync()  # acks below promise that the fragments are on disk
-        self._flush_acks()
+        if self.persistence is None or self._durable():
+            self._flush_acks()  # with the log on: the fragments acknowledged are on disk
         now = time.monotonic()
         if now - self.last_stats >= self.config.stats_interval_s:
             self.publish_stats()
             self.last_stats = now
         interval = self.config.snapshot_interval_s
-        if self.persistence is not None and interval and now - self.last_snapshot >= interval:
+        if (self.persistence is not None and not self.disk_full and interval
+                and now - self.last_snapshot >= interval):
             self.snapshot()
 
     def _handle(self, kind: str, item) -> None:
@@ -290,6 +296,29 @@ class ReplayServer:
         self.obs_moments = merge_moments(self.obs_moments, batch_moments(fragment.obs[:-1]))
         self.ret_moments = merge_moments(self.ret_moments, batch_moments(fragment.disc_returns))
         ledger.unacked[fragment.incarnation].append(fragment.seq)
+
+    def _durable(self) -> bool:
+        """Sync the log; True when every logged fragment is on disk. A refused write or fsync
+        (a full disk) is said once with the path: until the log takes writes again (tried every
+        DISK_RETRY_S) nothing is acknowledged or taken in, so actors hold their fragments and
+        resend them, while samples go on being served from memory."""
+        now = time.monotonic()
+        if self.disk_full and now < self.disk_retry_at:
+            return False
+        try:
+            self.persistence.sync()
+        except OSError as exc:
+            if not self.disk_full:
+                log.warning(f"the write-ahead log cannot be written: {self.persistence.dir}: "
+                            f"{exc.strerror or exc}; no fragment is acknowledged or taken in "
+                            f"until it can (samples go on), trying again every "
+                            f"{DISK_RETRY_S:g} s")
+            self.disk_full, self.disk_retry_at = True, now + DISK_RETRY_S
+            return False
+        if self.disk_full:
+            log.info(f"the write-ahead log takes writes again: {self.persistence.dir}")
+            self.disk_full = False
+        return True
 
     def _flush_acks(self) -> None:
         for actor_id, ledger in self.ledgers.items():
@@ -495,7 +524,8 @@ class ReplayServer:
                   "pending_fragments": len(self.pending),
                   "waiting_requests": len(self.waiting),
                   "samples_per_insert": limiter.get("samples_per_insert_achieved", 0.0),
-                  "bad_messages": sum(self.bad.values())}
+                  "bad_messages": sum(self.bad.values()),
+                  "disk_full": float(self.disk_full)}
         values.update({f"bad/{kind}": n for kind, n in self.bad.items()})
         if self.persistence is not None:
             p = self.persistence
@@ -519,10 +549,15 @@ class ReplayServer:
             query.drop()
         self.waiting.clear()
         if self.persistence is not None:
-            self.persistence.sync()
-            self._flush_acks()
-            self.snapshot(wait=True)  # a restart then replays no log at all
-            self.persistence.close()
+            self.disk_retry_at = 0.0  # one last try
+            if self._durable():
+                self._flush_acks()
+                self.snapshot(wait=True)  # a restart then replays no log at all
+            else:
+                log.warning(f"stopped with {self.persistence.unwritten} fragments not on disk "
+                            "and never acknowledged: their actors send them again")
+            with contextlib.suppress(OSError):
+                self.persistence.close()
         self.token.undeclare()
 
 

@@ -104,20 +104,56 @@ def test_periodic_checkpoints_are_named_rotated_and_the_final_one_stays(tmp_path
     assert service.checkpoints_written == 5 and service.checkpoint_s > 0
 
 
-def test_a_failed_periodic_checkpoint_is_one_line_and_training_goes_on(tmp_path, monkeypatch,
-                                                                      capsys):
+def test_a_full_disk_costs_periodic_checkpoints_one_line_and_keeps_the_last_one(
+        tmp_path, monkeypatch, capsys):
     service, _ = service_for(tmp_path)
+    real, full = ckpt.save_training, [False]
 
-    def disk_full(*_args, **_kw):
-        raise OSError(28, "No space left on device")
+    def save_training(*args, **kw):
+        if full[0]:
+            raise OSError(28, "No space left on device")
+        return real(*args, **kw)
 
-    monkeypatch.setattr("tpdeb.services.learner.save_training", disk_full)
+    monkeypatch.setattr("tpdeb.services.learner.save_training", save_training)
     try:
+        service.learner.updates, service.global_step = 10, 1000
+        first = service.periodic_checkpoint()
+        full[0] = True
+        service.learner.updates, service.global_step = 20, 2000
         assert service.periodic_checkpoint() is None
+        assert service.periodic_checkpoint() is None  # still full: no second line
+        full[0] = False
+        service.learner.updates, service.global_step = 30, 3000
+        assert service.periodic_checkpoint().name == "ckpt_30_3000.pt"
     finally:
         close(service)
+    assert ckpt.load(first)["updates"] == 10  # the previous one stayed valid throughout
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "No space left on device" in err[0] and "goes on" in err[0], err
+    assert "stays valid" in err[0]
+
+
+def test_a_version_mark_the_disk_refuses_holds_the_parameters_back(tmp_path, monkeypatch):
+    service, _ = service_for(tmp_path)
+    service.mark_guard.retry_s = 0.0  # the next publish tries the disk again
+    try:
+        service.learner.updates = 1
+        service.publish_params()
+        published = service.current_version
+        service.learner.updates = 5 * ckpt.VERSION_BLOCK  # past the mark: a new one is needed
+
+        def full(*_args, **_kw):
+            raise OSError(28, "No space left on device")
+
+        monkeypatch.setattr(ckpt, "write_atomic", full)
+        service.publish_params()
+        assert service.current_version == published  # never above the mark on disk
+        monkeypatch.undo()
+        service.publish_params()
+        assert service.current_version == 5 * ckpt.VERSION_BLOCK
+        assert service.versions.reserved >= service.current_version
+    finally:
+        close(service)
 
 
 def test_auto_skips_temp_files_and_a_truncated_newest_checkpoint(tmp_path):

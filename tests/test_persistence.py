@@ -290,3 +290,37 @@ def test_a_run_dir_written_under_another_schema_version_is_refused_in_one_line(t
     assert f"schema version {SCHEMA_VERSION - 1}" in line and "--restore never" in line
     assert "\n" not in line and server.persistence is None and len(server.replay) == 0
     server.close()
+
+
+def test_a_refused_sync_leaves_no_torn_record_and_the_next_one_writes_what_it_held(
+        tmp_path, monkeypatch):
+    import errno
+
+    import tpdeb.services.store.persistence as persistence
+
+    p = ReplayPersistence(tmp_path)
+    p.log(b"a")
+    p.sync()
+    real_fsync, full = persistence.os.fsync, [True]
+
+    def fsync(fd):
+        if full[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(persistence.os, "fsync", fsync)
+    p.log(b"b")
+    p.log(b"c")
+    with pytest.raises(OSError, match="No space"):
+        p.sync()
+    assert p.unwritten == 2
+    segment = next(tmp_path.glob("wal-*.log"))
+    _, records = ReplayPersistence(tmp_path).load(decode)
+    assert [r.decode() for r in records] == ["a"]  # cut back to what was synced
+    with pytest.raises(OSError):
+        p.sync()  # still full: still held
+    full[0] = False
+    p.log(b"d")
+    p.sync()
+    assert p.unwritten == 0
+    assert [r.decode() for r in read_records(segment, strict=True)] == ["a", "b", "c", "d"]

@@ -181,3 +181,50 @@ def test_an_actor_stopped_before_its_first_parameters_ends_cleanly():
         assert actor.collector is None and actor.sent == 0
     finally:
         actor.close()
+
+
+def test_a_full_disk_stops_acks_and_intake_not_samples_and_nothing_acked_is_lost(
+        replay, tmp_path, monkeypatch, caplog):
+    import errno
+    import logging
+
+    import tpdeb.services.replay as replay_module
+    import tpdeb.services.store.persistence as persistence
+
+    server, bus = replay
+    server.enable_persistence(tmp_path / "replay")
+    real_fsync, full = persistence.os.fsync, [False]
+
+    def fsync(fd):
+        if full[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real_fsync(fd)
+
+    monkeypatch.setattr(persistence.os, "fsync", fsync)
+    monkeypatch.setattr(replay_module, "DISK_RETRY_S", 0.0)
+    send(bus, make_traj(seed=0))
+    send(bus, make_traj(seed=1))
+    server.poll(0.0)
+    assert len(acks_for(bus, 3)) == 1
+    full[0] = True
+    with caplog.at_level(logging.INFO, "tpdeb-replay"):
+        send(bus, make_traj(seed=2))  # ingested, its log write refused: never acknowledged
+        server.poll(0.0)
+        send(bus, make_traj(seed=3))  # waits: nothing is taken in while the disk is full
+        server.poll(0.0)
+        assert server.disk_full and len(server.replay) == 3 and len(server.pending) == 1
+        assert sorted(int(s) for a in acks_for(bus, 3) for s in a.seqs) == [0, 1]
+        (reply,) = ask_for_a_batch(bus, server)
+        assert reply.ready  # samples go on
+        full[0] = False
+        server.poll(0.0)  # the log takes writes: the held fragment is acknowledged
+        assert not server.disk_full
+        server.poll(0.0)  # and the waiting one taken in
+    assert len(server.replay) == 4
+    assert sorted(int(s) for a in acks_for(bus, 3) for s in a.seqs) == [0, 1, 2, 3]
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1 and "No space left on device" in warnings[0]
+    server.close()
+    monkeypatch.undo()
+    state, records = persistence.ReplayPersistence(tmp_path / "replay").load(bytes)
+    assert state["ledgers"][3]["ingested"] == 4 and list(records) == []  # a restart has all

@@ -51,8 +51,10 @@ class DiskGuard:
     many were skipped. `clock` is injectable for tests."""
 
     def __init__(self, what: str, path: str | Path, log: logging.Logger, retry_s: float = 5.0,
+                 consequence: str = "training goes on without it",
                  clock: Callable[[], float] = time.monotonic):
         self.what, self.path, self.log, self.retry_s, self.clock = what, path, log, retry_s, clock
+        self.consequence = consequence
         self.failing = False
         self.skipped = 0
         self.failures = 0
@@ -69,9 +71,9 @@ class DiskGuard:
             self.failures += 1
             self.skipped += 1
             if not self.failing:
+                retry = f", trying again every {self.retry_s:g} s" if self.retry_s else ""
                 self.log.warning(f"{self.what} not written: {self.path}: "
-                                 f"{exc.strerror or exc}; training goes on without it, "
-                                 f"trying again every {self.retry_s:g} s")
+                                 f"{exc.strerror or exc}; {self.consequence}{retry}")
             self.failing = True
             self._next_try = self.clock() + self.retry_s
             return False

@@ -26,6 +26,7 @@ the item decoder raise `Incompatible`, which ends the restore (one line, no fall
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
@@ -172,6 +173,12 @@ class ReplayPersistence:
         self.logged_records = 0
         self.sync_s_total = 0.0
         self.syncs = 0
+        # A refused write or fsync (a full disk) must not leave a torn record in the middle of
+        # the log: the segment is cut back to its last synced size, and the records logged since
+        # are written again by the next sync.
+        self._synced_size = 0
+        self._since_sync: list[bytes] = []
+        self._unwritten: list[bytes] = []
 
     # -- restore
     def complete_snapshots(self) -> list[Path]:
@@ -233,24 +240,58 @@ class ReplayPersistence:
             self._wal.close()
         self._segment += 1
         self._wal = (self.dir / _SEGMENT.format(self._segment)).open("ab")
+        self._synced_size = 0
         fsync_dir(self.dir)
 
     def log(self, payload: bytes) -> None:
         if self._wal is None:
             self._open_segment()
-        append_record(self._wal, payload)
-        self._dirty = True
+        if self._unwritten:  # behind what a refused sync holds: the order is kept
+            self._unwritten.append(payload)
+        else:
+            append_record(self._wal, payload)
+            self._since_sync.append(payload)
+            self._dirty = True
         self.logged_records += 1
 
+    @property
+    def unwritten(self) -> int:
+        """Records a refused sync left out of the log (the next sync writes them)."""
+        return len(self._unwritten)
+
     def sync(self) -> None:
-        """Make every logged record durable (one fsync for all of them)."""
-        if self._dirty:
-            started = time.perf_counter()
+        """Make every logged record durable (one fsync for all of them). If the disk refuses,
+        the segment is cut back to what was synced before and OSError raised; the records
+        logged since are kept and written again by the next call."""
+        if self._unwritten:
+            for payload in self._unwritten:
+                append_record(self._wal, payload)
+            self._since_sync, self._unwritten = self._unwritten + self._since_sync, []
+            self._dirty = True
+        if not self._dirty:
+            return
+        started = time.perf_counter()
+        try:
             self._wal.flush()
             os.fsync(self._wal.fileno())
-            self._dirty = False
-            self.sync_s_total += time.perf_counter() - started
-            self.syncs += 1
+        except OSError:
+            self._cut_back()
+            raise
+        self._dirty = False
+        self._synced_size = self._wal.tell()
+        self._since_sync = []
+        self.sync_s_total += time.perf_counter() - started
+        self.syncs += 1
+
+    def _cut_back(self) -> None:
+        path = Path(self._wal.name)
+        with contextlib.suppress(OSError):
+            self._wal.close()  # what its buffer still holds is dropped with it
+        with contextlib.suppress(OSError):
+            os.truncate(path, self._synced_size)
+        self._wal = path.open("ab")
+        self._unwritten, self._since_sync = self._since_sync, []
+        self._dirty = False
 
     # -- snapshots
     @property
