@@ -30,6 +30,21 @@ class FullDisk:
         raise OSError(errno.ENOSPC, "No space left on device")
 
 
+def refused_fsyncs(monkeypatch, full: bool) -> list[bool]:
+    """The replay log's fsync raises ENOSPC while the returned flag's [0] is True."""
+    import tpdeb.services.store.persistence as persistence
+
+    real, flag = persistence.os.fsync, [full]
+
+    def fsync(fd):
+        if flag[0]:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(fd)
+
+    monkeypatch.setattr(persistence.os, "fsync", fsync)
+    return flag
+
+
 def test_an_append_the_disk_refuses_part_way_is_cut_back_off(tmp_path, monkeypatch):
     disk = FullDisk()
     monkeypatch.setattr(diskio.os, "write", disk)

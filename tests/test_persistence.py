@@ -294,21 +294,12 @@ def test_a_run_dir_written_under_another_schema_version_is_refused_in_one_line(t
 
 def test_a_refused_sync_leaves_no_torn_record_and_the_next_one_writes_what_it_held(
         tmp_path, monkeypatch):
-    import errno
-
-    import tpdeb.services.store.persistence as persistence
+    from tests.test_disk_full import refused_fsyncs
 
     p = ReplayPersistence(tmp_path)
     p.log(b"a")
     p.sync()
-    real_fsync, full = persistence.os.fsync, [True]
-
-    def fsync(fd):
-        if full[0]:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        real_fsync(fd)
-
-    monkeypatch.setattr(persistence.os, "fsync", fsync)
+    full = refused_fsyncs(monkeypatch, full=True)
     p.log(b"b")
     p.log(b"c")
     with pytest.raises(OSError, match="No space"):

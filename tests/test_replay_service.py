@@ -185,22 +185,15 @@ def test_an_actor_stopped_before_its_first_parameters_ends_cleanly():
 
 def test_a_full_disk_stops_acks_and_intake_not_samples_and_nothing_acked_is_lost(
         replay, tmp_path, monkeypatch, caplog):
-    import errno
     import logging
 
     import tpdeb.services.replay as replay_module
-    import tpdeb.services.store.persistence as persistence
+    from tests.test_disk_full import refused_fsyncs
+    from tpdeb.services.store.persistence import ReplayPersistence
 
     server, bus = replay
     server.enable_persistence(tmp_path / "replay")
-    real_fsync, full = persistence.os.fsync, [False]
-
-    def fsync(fd):
-        if full[0]:
-            raise OSError(errno.ENOSPC, "No space left on device")
-        real_fsync(fd)
-
-    monkeypatch.setattr(persistence.os, "fsync", fsync)
+    full = refused_fsyncs(monkeypatch, full=False)
     monkeypatch.setattr(replay_module, "DISK_RETRY_S", 0.0)
     send(bus, make_traj(seed=0))
     send(bus, make_traj(seed=1))
@@ -226,5 +219,5 @@ def test_a_full_disk_stops_acks_and_intake_not_samples_and_nothing_acked_is_lost
     assert len(warnings) == 1 and "No space left on device" in warnings[0]
     server.close()
     monkeypatch.undo()
-    state, records = persistence.ReplayPersistence(tmp_path / "replay").load(bytes)
+    state, records = ReplayPersistence(tmp_path / "replay").load(bytes)
     assert state["ledgers"][3]["ingested"] == 4 and list(records) == []  # a restart has all
