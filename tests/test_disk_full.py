@@ -1,6 +1,6 @@
 """A disk that refuses writes (ENOSPC) part-way: the run's metrics and TensorBoard events lose
 only the rows written meanwhile, never end in half a line or record, say so once per outage and
-carry on when space is back."""
+carry on when space is back; a whole cluster on a tmpfs that fills for a while finishes."""
 
 import errno
 import logging
@@ -108,3 +108,42 @@ def test_metrics_and_events_survive_a_full_disk_and_resume(tmp_path, monkeypatch
     acc = accumulator.EventAccumulator(str(tmp_path))
     acc.Reload()
     assert [e.step for e in acc.Scalars("charts/episodic_return")] == [100, 400]
+
+
+def test_a_cluster_whose_disk_fills_for_a_while_finishes_and_loses_nothing_acknowledged(
+        procs, tmp_path):
+    import re
+    import subprocess
+    import time
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=32m", "tmpfs", str(disk)],
+            capture_output=True).returncode != 0:
+        pytest.skip("needs root and a tmpfs mount")
+    try:
+        run_dir = disk / "run"
+        cluster = procs.spawn("cluster", "--env-id", "InvertedPendulum-v5", "--seed", "1",
+                              "--total-timesteps", "60000", "--run-dir", str(run_dir))
+        procs.wait_for_line(cluster, "[learner] tpdeb-learner: [", timeout_s=120)
+        with (disk / "fill").open("wb") as f, pytest.raises(OSError, match="No space"):
+            while True:  # the disk fills up, as a neighbour's job would fill it
+                f.write(b"\0" * (1 << 20))
+                f.flush()
+        time.sleep(8)
+        (disk / "fill").unlink()
+        assert cluster.wait(180) == 0, procs.output(cluster)[-3000:]
+        out = procs.output(cluster)
+    finally:
+        procs.stop_all()
+        subprocess.run(["umount", "-l", str(disk)], check=False)
+    for what in ("the write-ahead log cannot be written", "metrics rows not written"):
+        assert out.count(what) <= 1, out  # said once per outage, if the outage reached it
+    assert "write-ahead log cannot be written" in out and "takes writes again" in out, out
+    assert "Traceback" not in out, out
+    acknowledged = sum(int(n.replace(",", "")) for n in re.findall(r"([\d,]+) acknowledged", out))
+    ingested = int(re.search(r"([\d,]+) steps ingested", out).group(1).replace(",", ""))
+    fragment_len = int(re.search(r"serving InvertedPendulum-v5 \(obs \d+, act \d+, T (\d+)\)",
+                                 out).group(1))
+    assert ingested == fragment_len * acknowledged  # each acknowledged fragment in, once
