@@ -351,6 +351,9 @@ class ReplayServer:
             replayed += 1
         if persistence.skipped:
             log.info(f"skipped an unreadable snapshot ({persistence.skipped})")
+        if persistence.torn:
+            log.info(f"the log ends in a torn record ({persistence.torn}): a crash mid-write, "
+                     f"never acknowledged; restored the {replayed:,} logged fragments before it")
         self.persistence = persistence  # only now: a failed restore must not snapshot over it
         if state is not None or replayed:
             self.restored = (f"restored {len(self.replay):,} fragments ({self.inserted_steps:,} "

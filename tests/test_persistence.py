@@ -63,8 +63,10 @@ def test_a_torn_record_ends_the_log(tmp_path):
     p.close()
     segment = next(tmp_path.glob("wal-*.log"))
     segment.write_bytes(segment.read_bytes()[:-4])  # the crash hit mid-write
-    _, records = ReplayPersistence(tmp_path).load(decode)
+    restored = ReplayPersistence(tmp_path)
+    _, records = restored.load(decode)
     assert [r.decode() for r in records] == ["whole"]
+    assert restored.torn == f"{segment.name} at byte 13 of 28"  # after 8-byte header + "whole"
     with pytest.raises(Exception, match="corrupt"):
         list(read_records(segment, strict=True))
 

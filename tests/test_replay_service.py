@@ -221,3 +221,23 @@ def test_a_full_disk_stops_acks_and_intake_not_samples_and_nothing_acked_is_lost
     monkeypatch.undo()
     state, records = ReplayPersistence(tmp_path / "replay").load(bytes)
     assert state["ledgers"][3]["ingested"] == 4 and list(records) == []  # a restart has all
+
+
+def test_a_log_torn_by_a_power_cut_restores_what_came_before_with_one_line(
+        replay, tmp_path, caplog):
+    import logging
+
+    from tpdeb.services.store.persistence import ReplayPersistence
+
+    server, _ = replay
+    log = ReplayPersistence(tmp_path / "replay")
+    for seed in (0, 1):
+        log.log(encode(make_traj(seed=seed)))
+    log.close()
+    segment = next((tmp_path / "replay").glob("wal-*.log"))
+    segment.write_bytes(segment.read_bytes()[:-100])  # the power went mid-write
+    with caplog.at_level(logging.INFO, "tpdeb-replay"):
+        server.enable_persistence(tmp_path / "replay")
+    assert len(server.replay) == 1
+    lines = [r.getMessage() for r in caplog.records if "torn" in r.getMessage()]
+    assert len(lines) == 1 and "restored the 1 logged fragments before it" in lines[0]

@@ -116,23 +116,30 @@ def append_record(f, payload: bytes) -> None:
     f.write(payload)
 
 
-def read_records(path: Path, strict: bool) -> Iterator[bytes]:
+def read_records(path: Path, strict: bool,
+                 torn: Callable[[Path, int], None] | None = None) -> Iterator[bytes]:
     """Records of one file in order. A torn or corrupt record ends a log (`strict=False`: a crash
-    can only tear the tail); in a snapshot file, which was complete, it is an error."""
+    can only tear the tail; `torn(path, offset)` hears where); in a snapshot file, which was
+    complete, it is an error."""
     with path.open("rb") as f:
         while True:
+            start = f.tell()
             header = f.read(_HEADER.size)
             if not header:
                 return
             if len(header) < _HEADER.size:
                 if strict:
                     raise CorruptRecord(f"{path}: truncated record header")
+                if torn is not None:
+                    torn(path, start)
                 return
             length, crc = _HEADER.unpack(header)
             payload = f.read(length)
             if len(payload) < length or zlib.crc32(payload) != crc:
                 if strict:
                     raise CorruptRecord(f"{path}: corrupt record")
+                if torn is not None:
+                    torn(path, start)
                 return
             yield payload
 
@@ -167,6 +174,7 @@ class ReplayPersistence:
         self._writer: threading.Thread | None = None
         self.error: BaseException | None = None
         self.skipped = ""  # why the newest snapshot was passed over at load, if it was
+        self.torn = ""  # where the log ended in a torn record at load, if it did
         self.last_snapshot_s = 0.0  # how long the last background write took
         self.last_capture_ms = 0.0  # how long the loop spent capturing the state
         self.snapshots_written = 0
@@ -207,9 +215,12 @@ class ReplayPersistence:
         segments = [p for p in self._segments() if self._index(p) >= first_segment]
         self._segment = max([self._index(p) for p in self._segments()] + [first_segment - 1])
 
+        def torn(path: Path, offset: int) -> None:
+            self.torn = f"{path.name} at byte {offset:,} of {path.stat().st_size:,}"
+
         def records() -> Iterator[bytes]:
             for path in segments:
-                yield from read_records(path, strict=False)
+                yield from read_records(path, strict=False, torn=torn)
 
         return state, records()
 
