@@ -109,6 +109,7 @@ class ActorService:
         # so a restarted actor, whose seqs start at 0 again, is not taken for a resender.
         self.incarnation = secrets.randbits(62)
         self.sent = self.resent = 0
+        self.last_stats, self.last_steps = 0.0, 0  # when stats last went out, at what count
         self.latest_params: bytes | None = None
         self.params_lock = threading.Lock()
         self.params_wanted = threading.Event()
@@ -239,8 +240,7 @@ class ActorService:
         self.puller.start()
         log.info(f"actor {self.actor_id}: {cfg.num_envs} × {self.spec.env_id}, parameters "
                   f"v{self.collector.policy_version}")
-        last_stats = last_check = time.monotonic()
-        last_steps = 0
+        last_check = self.last_stats = time.monotonic()
         while not self.stop:
             self.refresh_params()
             fragments = self.collector.step()
@@ -252,17 +252,23 @@ class ActorService:
             if now - last_check >= 0.5:
                 self.resend_due(now)
                 last_check = now
-            if now - last_stats >= cfg.stats_interval_s:
-                steps = self.collector.env_steps
-                self.publish_stats((steps - last_steps) / (now - last_stats))
-                last_stats, last_steps = now, steps
+            self.stats_due(now)
 
     def send(self, fragment) -> None:
         while not self.stop and not self.outbox.wait_for_room(0.05):
-            # back-pressure: wait for acks, resend the lost, keep the parameters fresh
-            self.resend_due(time.monotonic())
+            # back-pressure: wait for acks, resend the lost, keep the parameters fresh, and
+            # keep publishing stats (a held-back actor is not a hung one)
+            now = time.monotonic()
+            self.resend_due(now)
             self.refresh_params()
+            self.stats_due(now)
         self.send_now(fragment)
+
+    def stats_due(self, now: float) -> None:
+        if now - self.last_stats >= self.config.stats_interval_s:
+            steps = self.collector.env_steps
+            self.publish_stats((steps - self.last_steps) / (now - self.last_stats))
+            self.last_stats, self.last_steps = now, steps
 
     def send_now(self, fragment) -> None:
         """Encode, keep in the outbox until acknowledged, put (the caller made room)."""

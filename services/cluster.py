@@ -265,7 +265,36 @@ class Cluster:
             elif child.restart_at is not None and now >= child.restart_at and not self.ending:
                 self.health.restarted(child.role, child.ident)
                 child.start(now)
+        self.check_hangs(now)
         return self.check_actors()
+
+    def check_hangs(self, now: float) -> None:
+        """A service alive but silent (no stats for `hang_intervals` of its stats intervals, or
+        since its start for at least start_timeout_s) is killed; its exit then goes to its
+        restart policy like a crash, and counts toward a crash loop. When every service that
+        publishes stats is silent at once, the network is: the router is the one killed."""
+        if self.ending:
+            return
+        views = [c.view() for c in self.children]
+        silent = self.health.silent(views, now, self.plan.hang_intervals,
+                                    self.plan.start_timeout_s)
+        watched = [v for v in views if v.running and v.ident is not None]
+        if not silent:
+            return
+        children = {c.name: c for c in self.children}
+        if len(silent) == len(watched) > 1:
+            router = children.get("router")
+            bound = max(b for _, _, b in silent)
+            if router is None or not router.running or now - router.started_at <= bound:
+                return  # restarting, or just restarted: its clients are reconnecting
+            silent = [(router.view(), min(s for _, s, _ in silent), bound)]
+        for view, silent_s, bound in silent:
+            child = children[view.name]
+            if not child.hung:
+                what = "nobody's stats arrive" if child.role == "router" else "no stats"
+                self.display.echo(f"[{PROG}] {child.name} is hung: {what} for {silent_s:.0f} s "
+                                  f"(bound {bound:g} s); killing it")
+                child.kill_hung()
 
     @property
     def ending(self) -> bool:

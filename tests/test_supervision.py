@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import io
 import os
+import re
 import signal
 import threading
 import time
@@ -14,10 +15,11 @@ import pytest
 import zenoh
 
 from tests.procs import pids_with, service_pid
+from tests.test_faults import CLUSTER_FILE
 from tpdeb.services.cluster import Cluster, parse_args
 from tpdeb.services.config import ConfigError
 from tpdeb.services.launcher.child import Child
-from tpdeb.services.launcher.plan import make_plan
+from tpdeb.services.launcher.plan import hang_intervals, make_plan
 from tpdeb.services.launcher.restart import (
     MAX_BACKOFF_S,
     RestartPolicy,
@@ -213,7 +215,10 @@ class FakeChild(Child):
         self.reader = threading.Thread(target=lambda: None)
         self.reader.start()
         self.tracker.started(now)
-        self.restart_at, self.reported = None, False
+        self.restart_at, self.reported, self.started_at, self.hung = None, False, now, False
+
+    def kill_hung(self) -> None:
+        self.hung, self.proc.returncode = True, -9
 
 
 def fake_cluster(tmp_path, **policies: str) -> tuple[Cluster, dict[str, FakeChild], io.StringIO]:
@@ -396,3 +401,95 @@ def test_a_killed_router_is_restarted_and_the_run_finishes(procs, tmp_path):
     # Every other service is a client of the router: they reconnect when it comes back.
     kill_and_finish(procs, tmp_path, 16_000, "[learner] tpdeb-learner: [", "router",
                     "[router] tpdeb-router: routing on")
+
+
+def stats_from_all(cluster: Cluster, children: dict) -> float:
+    """Every service's stats arrive now; returns now."""
+    now = time.monotonic()
+    for child in children.values():
+        if child.ident is not None:
+            cluster.health.saw_stats(child.role, child.ident, now)
+    return now
+
+
+def test_a_service_silent_past_its_bound_is_killed_and_restarted_like_a_crash(tmp_path):
+    cluster, children, out = fake_cluster(tmp_path)
+    t0 = stats_from_all(cluster, children)
+    late = t0 + 31.0  # 30 intervals of 1 s: the default bound
+    for name in ("learner", "actor-0", "actor-1"):
+        cluster.health.saw_stats(children[name].role, children[name].ident, late)
+    cluster.check_hangs(late)
+    assert children["replay"].hung and not children["learner"].hung
+    assert "replay is hung: no stats for 31 s (bound 30 s); killing it" in out.getvalue()
+    cluster.check_hangs(late + 1)  # killed once, said once
+    assert out.getvalue().count("is hung") == 1
+    assert cluster.tend() is None  # its exit goes to the restart policy, as a crash would
+    replay = children["replay"]
+    assert replay.tracker.restarts == 1 and replay.restart_at is not None  # toward a crash loop
+    assert "replay exited with code -9; restarting" in out.getvalue()
+
+
+def test_before_its_first_stats_a_service_has_the_start_timeout(tmp_path):
+    cluster, children, _ = fake_cluster(tmp_path)
+    started = children["learner"].started_at
+    cluster.check_hangs(started + cluster.plan.start_timeout_s - 1)
+    assert not any(c.hung for c in children.values())
+
+
+def test_when_every_service_is_silent_the_router_is_the_one_killed(tmp_path):
+    cluster, children, out = fake_cluster(tmp_path)
+    cluster.check_hangs(stats_from_all(cluster, children) + 40)
+    assert [name for name, c in children.items() if c.hung] == ["router"]
+    assert "router is hung: nobody's stats arrive" in out.getvalue()
+
+
+def test_hang_intervals_0_turns_it_off_and_bad_values_are_refused(tmp_path):
+    cluster, children, _ = fake_cluster(tmp_path)
+    cluster.plan.hang_intervals = 0
+    cluster.check_hangs(time.monotonic() + 10_000)
+    assert not any(c.hung for c in children.values())
+    with pytest.raises(ConfigError, match="hang_intervals=-1 must be a number >= 0"):
+        hang_intervals({"hang_intervals": -1}, "cluster.toml")
+
+
+# the fault tests' cluster, told to take 5 silent stats intervals for a hang
+HUNG_FILE = CLUSTER_FILE.replace("restart_backoff_s = 0.5\n", "restart_backoff_s = 0.5\n"
+                                 "hang_intervals = 5\nstop_timeout_s = 10\n")
+
+
+def hung_cluster(procs, tmp_path, endpoint, steps: int):
+    run_dir = tmp_path / "run"
+    cluster_file = tmp_path / "cluster.toml"
+    assert "hang_intervals" in HUNG_FILE
+    cluster_file.write_text(HUNG_FILE.format(endpoint=endpoint, env="InvertedPendulum-v5",
+                                             steps=steps))
+    cluster = procs.spawn("cluster", "--config", str(cluster_file), "--run-dir", str(run_dir))
+    procs.wait_for_line(cluster, "[learner] tpdeb-learner: [", timeout_s=120)
+    return cluster, run_dir
+
+
+def test_a_hung_replay_is_restarted_and_sigterm_stops_a_wedged_run_within_a_bound(
+        procs, tmp_path, endpoint):
+    cluster, run_dir = hung_cluster(procs, tmp_path, endpoint, steps=10**7)
+    os.kill(service_pid(run_dir, "replay"), signal.SIGSTOP)  # alive, silent
+    procs.wait_for_line(cluster, "replay is hung: no stats for", timeout_s=60)
+    procs.wait_for_line(cluster, "replay exited with code -9; restarting", timeout_s=30)
+    procs.wait_for_line(cluster, "[replay] tpdeb-replay: restored", timeout_s=60)
+    def steps() -> int:
+        found = re.findall(r"\[learner\] tpdeb-learner: \[\s*([\d,]+)/", procs.output(cluster))
+        return int(found[-1].replace(",", ""))
+
+    restored_at, deadline = steps(), time.monotonic() + 60  # and training goes on
+    while steps() < restored_at + 5000:
+        assert time.monotonic() < deadline, procs.output(cluster)[-3000:]
+        time.sleep(0.5)
+    assert procs.output(cluster).count("is hung") == 1  # the others went on publishing
+
+    for name in ("learner", "replay", "actor-0", "actor-1"):  # now everything is wedged
+        os.kill(service_pid(run_dir, name), signal.SIGSTOP)
+    started = time.monotonic()
+    cluster.send_signal(signal.SIGTERM)
+    code = cluster.wait(90)
+    assert code == 130 and time.monotonic() - started < 60, procs.output(cluster)[-3000:]
+    assert "SIGTERM: stopping the services" in procs.output(cluster)
+    assert not pids_with(str(run_dir))  # every service is gone

@@ -61,6 +61,8 @@ class Child:
         self.restart_at: float | None = None  # monotonic time a scheduled restart is due
         self.last_code: int | None = None
         self.reported = False  # the current process's exit was handed to the supervisor
+        self.started_at = 0.0
+        self.hung = False  # the current process was killed as hung
 
     def start(self, now: float) -> None:
         log = self.log_path.open("a", buffering=1)
@@ -73,7 +75,7 @@ class Child:
         self.reader = threading.Thread(target=self._pump, args=(self.proc, log), daemon=True)
         self.reader.start()
         self.tracker.started(now)
-        self.restart_at, self.reported = None, False
+        self.restart_at, self.reported, self.started_at, self.hung = None, False, now, False
 
     def _pump(self, proc: subprocess.Popen, log) -> None:
         for line in proc.stdout:
@@ -104,7 +106,13 @@ class Child:
 
     def view(self) -> ServiceView:
         return ServiceView(self.name, self.role, self.ident, self.has_token, self.running,
-                           self.tracker.restarts, self.stats_interval_s)
+                           self.tracker.restarts, self.stats_interval_s, self.started_at)
+
+    def kill_hung(self) -> None:
+        """SIGKILL to its process group: a hung process handles nothing gentler."""
+        self.hung = True
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(self.proc.pid, signal.SIGKILL)
 
     def stop(self, timeout_s: float) -> int | None:
         self.restart_at = None
@@ -112,6 +120,8 @@ class Child:
             return None
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
+            with contextlib.suppress(ProcessLookupError):  # a stopped one handles it when resumed
+                os.kill(self.proc.pid, signal.SIGCONT)
             try:
                 self.proc.wait(timeout_s)
             except subprocess.TimeoutExpired:

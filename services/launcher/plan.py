@@ -27,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_FILE = ROOT / "deploy" / "local.toml"
 ROLES = ("router", "replay", "learner", "actor")
 SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env", "restart"}
-CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", *RESTART_KEYS}
+CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", "hang_intervals",
+                *RESTART_KEYS}
 PASSWORD_VARIABLE = ENV_PREFIX + "PASSWORD"  # the one setting no file carries
 LINK_KEYS = ("up_bytes_per_s", "down_bytes_per_s", "latency_ms", "jitter_ms", "queue_ms")
 
@@ -56,6 +57,7 @@ class Plan:
     link_endpoint: str = ""
     restarts: RestartSettings = field(default_factory=RestartSettings)
     security: ClusterSecurity = field(default_factory=ClusterSecurity)
+    hang_intervals: float = 30.0  # stats silent this many of a service's intervals: hung
 
 
 def free_port() -> int:
@@ -114,7 +116,17 @@ def make_plan(args: argparse.Namespace) -> Plan:
                 train=train_settings(data.get("train", {}), args, f"{path} [train]"),
                 services=start_order(services), source=str(path), link=link,
                 link_endpoint=link_endpoint,
-                restarts=RestartSettings.from_section(cluster, path), security=security)
+                restarts=RestartSettings.from_section(cluster, path), security=security,
+                hang_intervals=hang_intervals(cluster, path))
+
+
+def hang_intervals(cluster: dict, path) -> float:
+    value = cluster.get("hang_intervals", 30)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
+        raise ConfigError(f"{path} [cluster]: hang_intervals={value!r} must be a number >= 0 "
+                          "(a service whose stats stay silent for that many of its stats "
+                          "intervals is restarted; 0: never)")
+    return float(value)
 
 
 def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, ServiceSpec]:

@@ -31,6 +31,7 @@ class ServiceView:
     running: bool
     restarts: int = 0
     stats_interval_s: float = 1.0
+    started_at: float = 0.0  # monotonic time its current process started
 
 
 class Health:
@@ -64,6 +65,24 @@ class Health:
         with self.lock:
             self.stats_at.pop((role, ident), None)
             self.seen.discard((role, ident))
+
+    def silent(self, views: list[ServiceView], now: float, intervals: float,
+               start_grace_s: float) -> list[tuple[ServiceView, float, float]]:
+        """Running services whose stats have stopped: (view, seconds silent, bound). The bound
+        is `intervals` of the service's stats interval; before a process's first stats, its
+        start counts, with at least `start_grace_s` (start-up, a restore)."""
+        out = []
+        with self.lock:
+            for v in views:
+                if not v.running or v.ident is None or not intervals:
+                    continue
+                bound = intervals * v.stats_interval_s
+                seen = self.stats_at.get((v.role, v.ident))
+                if seen is None:
+                    seen, bound = v.started_at, max(bound, start_grace_s)
+                if now - seen > bound:
+                    out.append((v, now - seen, bound))
+        return out
 
     def summary(self, views: list[ServiceView], now: float) -> str:
         up, starting, unreachable, down, stale = [], [], [], [], []
