@@ -37,8 +37,6 @@ import threading
 import time
 from pathlib import Path
 
-import psutil
-
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "capacity"
 RUN_ID = "capacity"
@@ -159,34 +157,6 @@ def stop(procs: list[subprocess.Popen]) -> None:
             proc.wait()
 
 
-class CpuSampler(threading.Thread):
-    """(wall-clock time, CPU seconds) of each process every 0.2 s."""
-
-    def __init__(self, procs: list[subprocess.Popen]):
-        super().__init__(daemon=True)
-        self.procs, self.done = procs, threading.Event()
-        self.samples: list[tuple[float, list[float]]] = []
-
-    def run(self) -> None:
-        while not self.done.wait(0.2):
-            row = []
-            for proc in self.procs:
-                try:
-                    times = psutil.Process(proc.pid).cpu_times()
-                    row.append(times.user + times.system)
-                except psutil.Error:
-                    row.append(float("nan"))
-            self.samples.append((time.time(), row))
-
-    def per_second(self, start: float, end: float) -> list[float]:
-        """Each process's CPU seconds per second between the samples nearest `start`, `end`."""
-        inside = [s for s in self.samples if start <= s[0] <= end]
-        if len(inside) < 2:
-            return [float("nan")] * len(self.procs)
-        (t0, c0), (t1, c1) = inside[0], inside[-1]
-        return [(b - a) / (t1 - t0) for a, b in zip(c0, c1, strict=True)]
-
-
 def services(args, endpoint: str, run_dir: Path, persist: bool | None) -> list:
     """A router, and (persist not None) a replay server with its limiter opened wide."""
     py = sys.executable
@@ -221,21 +191,24 @@ def senders(args, endpoint: str, n: int, no_acks: bool) -> list[dict]:
 
 
 def ingest(args, persist: bool, n: int) -> dict:
+    from procfs import CpuSampler
+
     from tpdeb.services.launcher.plan import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     with tempfile.TemporaryDirectory(prefix="capacity-") as tmp:
         procs = services(args, endpoint, Path(tmp), persist)
-        sampler = CpuSampler(procs)
+        sampler = CpuSampler(lambda: {i: p.pid for i, p in enumerate(procs)}, 0.2)
         sampler.start()
         try:
             sent = senders(args, endpoint, n, no_acks=False)
         finally:
-            sampler.done.set()
+            sampler.stop()
             stop(procs)
     windows = [s["window"] for s in sent if "window" in s]
-    cpu = sampler.per_second(max(w[0] for w in windows), min(w[1] for w in windows)) \
-        if windows else [float("nan")] * 2
+    rates = sampler.per_second(max(w[0] for w in windows), min(w[1] for w in windows)) \
+        if windows else {}
+    cpu = [rates.get(i, float("nan")) for i in range(2)]
     fragments = sum(s.get("acked_per_s", 0.0) for s in sent)
     steps = fragments * max((s.get("steps_per_fragment", 0) for s in sent), default=0)
     row = {"persist": persist, "actors": n, "fragments_per_s": fragments,

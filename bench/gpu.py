@@ -26,13 +26,11 @@ import platform
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
-import psutil
 import torch
-from procfs import cmdline, descendants, service_name
+from procfs import CpuSampler, cmdline, descendants, service_name
 from throughput import preset_config, sample_batches, timed_loop
 
 from tpdeb.services.device import describe, resolve_device
@@ -96,33 +94,22 @@ def learner_rates(args, device) -> list[dict]:
     return rows
 
 
-class CpuSampler(threading.Thread):
-    """CPU seconds of each service below the cluster, read every second (a process's last
-    reading stands when it exits)."""
+def by_role(seconds: dict[tuple[int, str], float]) -> dict[str, float]:
+    """CPU seconds per role (the actors together) from {(pid, service name): seconds}."""
+    out: dict[str, float] = {}
+    for (_, name), value in seconds.items():
+        role = "actors" if name.startswith("actor") else name
+        out[role] = out.get(role, 0.0) + value
+    return out
 
-    def __init__(self, root: int):
-        super().__init__(daemon=True)
-        self.root, self.done = root, threading.Event()
-        self.seconds: dict[int, tuple[str, float]] = {}
 
-    def run(self) -> None:
-        while not self.done.wait(1.0):
-            for pid in descendants(self.root):
-                name = service_name(cmdline(pid))
-                if name is None:
-                    continue
-                try:
-                    times = psutil.Process(pid).cpu_times()
-                except psutil.Error:
-                    continue
-                self.seconds[pid] = (name, times.user + times.system)
-
-    def by_role(self) -> dict[str, float]:
-        out: dict[str, float] = {}
-        for name, seconds in self.seconds.values():
-            role = "actors" if name.startswith("actor") else name
-            out[role] = out.get(role, 0.0) + seconds
-        return out
+def services_below(root: int) -> dict[tuple[int, str], int]:
+    found = {}
+    for pid in descendants(root):
+        name = service_name(cmdline(pid))
+        if name is not None:
+            found[(pid, name)] = pid
+    return found
 
 
 def cluster_run(args, actors: int, device: str) -> dict:
@@ -137,7 +124,7 @@ def cluster_run(args, actors: int, device: str) -> dict:
     with (OUT / f"cluster_{actors}actors-{device}.log").open("w") as log:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)
-        sampler = CpuSampler(proc.pid)
+        sampler = CpuSampler(lambda: services_below(proc.pid), 1.0)
         sampler.start()
         try:
             code = proc.wait(args.cluster_seconds + 300)
@@ -146,8 +133,7 @@ def cluster_run(args, actors: int, device: str) -> dict:
             proc.wait(60)
             raise
         finally:
-            sampler.done.set()
-            sampler.join(5)
+            sampler.stop()
     wall = time.perf_counter() - start
     end_file = run_dir / "end.json"
     end = json.loads(end_file.read_text()) if end_file.is_file() else {}
@@ -155,7 +141,7 @@ def cluster_run(args, actors: int, device: str) -> dict:
     row = {"actors": actors, "device": device, "exit_code": code, "wall_s": round(wall, 1),
            "env_steps_per_s": end.get("global_step", 0) / train_s,
            "updates_per_s": end.get("updates", 0) / train_s,
-           "cpu_per_s": {k: round(v / wall, 2) for k, v in sampler.by_role().items()}}
+           "cpu_per_s": {k: round(v / wall, 2) for k, v in by_role(sampler.last).items()}}
     cpu = row["cpu_per_s"]
     print(f"[gpu] {actors} actors, learner on {device}: {row['env_steps_per_s']:,.0f} env steps/s, "
           f"{row['updates_per_s']:,.0f} updates/s; CPU/s replay {cpu.get('replay', 0):.2f}, "

@@ -4,6 +4,9 @@ resident memory, and which TPDEB service a process is."""
 from __future__ import annotations
 
 import os
+import threading
+import time
+from collections.abc import Callable, Hashable
 
 import psutil
 
@@ -70,3 +73,40 @@ def service_name(argv: list[str]) -> str | None:
         if index + 1 < len(argv):
             return f"actor-{argv[index + 1]}"
     return role
+
+
+class CpuSampler(threading.Thread):
+    """CPU seconds (user + system) of a changing set of processes, read every `period_s`:
+    `targets()` names them ({key: pid}) at each reading. `last` keeps each key's latest reading
+    (it stands once the process has exited); `per_second` gives rates over a window."""
+
+    def __init__(self, targets: Callable[[], dict[Hashable, int]], period_s: float):
+        super().__init__(daemon=True)
+        self.targets, self.period_s, self.done = targets, period_s, threading.Event()
+        self.samples: list[tuple[float, dict]] = []
+        self.last: dict = {}
+
+    def run(self) -> None:
+        while not self.done.wait(self.period_s):
+            row = {}
+            for key, pid in self.targets().items():
+                try:
+                    times = psutil.Process(pid).cpu_times()
+                except psutil.Error:
+                    continue
+                row[key] = times.user + times.system
+            self.last.update(row)
+            self.samples.append((time.time(), row))
+
+    def stop(self) -> None:
+        self.done.set()
+        self.join(5)
+
+    def per_second(self, start: float, end: float) -> dict:
+        """Each key's CPU seconds per second between the first and last readings inside
+        [start, end] (wall-clock), for the keys read at both."""
+        inside = [s for s in self.samples if start <= s[0] <= end]
+        if len(inside) < 2:
+            return {}
+        (t0, c0), (t1, c1) = inside[0], inside[-1]
+        return {k: (c1[k] - c0[k]) / (t1 - t0) for k in c0.keys() & c1.keys()}
