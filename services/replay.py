@@ -19,6 +19,7 @@ import logging
 import queue
 import shutil
 import sys
+import threading
 import time
 from collections import defaultdict, deque
 from dataclasses import dataclass, field
@@ -79,6 +80,7 @@ class SeqWindow:
 
 
 SNAPSHOT_FORMAT = 2  # of what snapshot() saves (2: msgpack state); a restore refuses any other
+MAX_HANDLED_PER_PASS = 512  # inbox items one loop pass takes before it ingests, samples, acks
 DISK_RETRY_S = 5.0  # while the log cannot be written, how often it is tried again
 MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
 
@@ -162,6 +164,9 @@ class ReplayServer:
         self.waiting: deque[tuple[float, object, SampleRequest]] = deque()
         self.ledgers: dict[int, ActorLedger] = defaultdict(ActorLedger)
         self.bad: dict[str, int] = defaultdict(int)
+        self.queued: dict[str, int] = defaultdict(int)  # sender -> its messages in the inbox
+        self.queued_lock = threading.Lock()
+        self.flooded = 0  # messages dropped on arrival: their sender had too many waiting
         self.log_bad = rate_limited(log)
         self.inserted_steps = 0
         self.samples_served = 0
@@ -178,7 +183,7 @@ class ReplayServer:
     def _declare(self) -> None:
         s, k = self.session, self.keys
         self.subscribers = [
-            s.declare_subscriber(k.traj_all, lambda m: self.inbox.put(("traj", m))),
+            s.declare_subscriber(k.traj_all, self._arrived),
             s.declare_subscriber(k.priorities, lambda m: self.inbox.put(("prio", m))),
             s.declare_subscriber(k.control, lambda m: self.inbox.put(("control", m))),
         ]
@@ -191,6 +196,24 @@ class ReplayServer:
         self.ack_publishers: dict[int, object] = {}
         self.stats_publisher = declare_publisher(s, "stats", k.stats("replay", 0))
         self.token = s.liveliness().declare_token(k.alive("replay", 0))
+
+    def _arrived(self, sample) -> None:
+        """A trajectory message (on a Zenoh thread): queued, unless its sender already has
+        `max_queued_per_sender` waiting: then dropped here, counted and said at a limited
+        rate."""
+        sender = str(sample.key_expr)
+        with self.queued_lock:
+            waiting = self.queued[sender]
+            if waiting >= self.config.max_queued_per_sender:
+                self.flooded += 1
+            else:
+                self.queued[sender] = waiting + 1
+        if waiting >= self.config.max_queued_per_sender:
+            self.log_bad("flood", f"dropped a message from {sender}: "
+                                  f"{self.config.max_queued_per_sender} of its messages are "
+                                  "already waiting (max_queued_per_sender)")
+            return
+        self.inbox.put(("traj", sample))
 
     def _answer_spec(self, query) -> None:
         query.reply(self.keys.spec, self.spec_bytes)
@@ -208,7 +231,7 @@ class ReplayServer:
             kind, item = self.inbox.get(timeout=timeout_s) if timeout_s > 0 else \
                 self.inbox.get_nowait()
             self._handle(kind, item)
-            while True:  # drain what arrived meanwhile before acting on it
+            for _ in range(MAX_HANDLED_PER_PASS):  # what arrived meanwhile, before acting on it
                 kind, item = self.inbox.get_nowait()
                 self._handle(kind, item)
         except queue.Empty:
@@ -236,6 +259,9 @@ class ReplayServer:
             return
         payload = item.payload.to_bytes()
         sender = str(item.key_expr)
+        if kind == "traj":
+            with self.queued_lock:
+                self.queued[sender] -= 1
         limit = self.config.max_message_bytes
         try:
             if kind == "traj":
@@ -527,7 +553,8 @@ class ReplayServer:
                   "pending_fragments": len(self.pending),
                   "waiting_requests": len(self.waiting),
                   "samples_per_insert": limiter.get("samples_per_insert_achieved", 0.0),
-                  "bad_messages": sum(self.bad.values()),
+                  "bad_messages": sum(self.bad.values()) + self.flooded,
+                  "bad/flood": self.flooded,
                   "disk_full": float(self.disk_full)}
         values.update({f"bad/{kind}": n for kind, n in self.bad.items()})
         if self.persistence is not None:

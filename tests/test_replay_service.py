@@ -241,3 +241,21 @@ def test_a_log_torn_by_a_power_cut_restores_what_came_before_with_one_line(
     assert len(server.replay) == 1
     lines = [r.getMessage() for r in caplog.records if "torn" in r.getMessage()]
     assert len(lines) == 1 and "restored the 1 logged fragments before it" in lines[0]
+
+
+def test_a_flooding_sender_is_held_to_its_share_and_the_others_still_get_in(replay):
+    server, bus = replay
+    limit = server.config.max_queued_per_sender
+    flooder = Keys(RUN).traj(9)
+    for _ in range(20 * limit):  # garbage as fast as it can put it, before the loop runs once
+        bus.session().put(flooder, b"\x93garbage")
+    send(bus, make_traj(seed=0))
+    send(bus, make_traj(seed=1))
+    assert server.inbox.qsize() == limit + 2  # memory: its share, not its flood
+    server.poll(0.0)
+    assert len(server.replay) == 2  # the honest actor's fragments are in and acknowledged
+    assert sorted(int(s) for a in acks_for(bus, 3) for s in a.seqs) == [0, 1]
+    assert server.flooded == 19 * limit and sum(server.bad.values()) == limit
+    assert server.stats()["bad/flood"] == 19 * limit
+    bus.session().put(flooder, b"\x93garbage")  # what was waiting is handled: room again
+    assert server.inbox.qsize() == 1

@@ -140,6 +140,10 @@ class ReplayServiceConfig(NetConfig, SamplingConfig):
     max_pending_fragments: int = 1024
     """fragments received but held back by the rate limiter; beyond this, new ones are dropped
     unacknowledged (their actors resend them)"""
+    max_queued_per_sender: int = 64
+    """messages of one sender (an actor's trajectory key) waiting to be decoded; beyond this
+    its new ones are dropped on arrival (an honest actor has at most its outbox in flight), so
+    one that floods cannot fill memory or crowd the others out"""
     sample_wait_s: float = 1.0
     """how long a sample request may wait for the rate limiter before a 'not ready' reply"""
     persist: bool = True
