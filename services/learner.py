@@ -115,13 +115,7 @@ class LearnerService:
             log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
                       f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
-        self.metrics = MetricsWriter(self.run_dir, log)
-        self.checkpoint_guard = DiskGuard(
-            "periodic checkpoint", checkpoint_dir(self.run_dir), log, retry_s=0.0,
-            consequence="training goes on and the previous checkpoint stays valid; the next is "
-                        f"tried in {config.checkpoint_interval_s:g} s")
-        self.mark_guard = DiskGuard("parameter-version mark", self.versions.path, log,
-                                    consequence="actors keep their parameters until it is")
+        self._writers()
         self.log_bad = rate_limited(log)
         self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
         self.stats_inbox: queue.Queue = queue.Queue()
@@ -143,6 +137,16 @@ class LearnerService:
         self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
         self.params_lock = threading.Lock()
         self._declare()
+
+    def _writers(self) -> None:
+        """The run dir's writers, each of which a full disk costs writes, not the run."""
+        self.metrics = MetricsWriter(self.run_dir, log)
+        self.checkpoint_guard = DiskGuard(
+            "periodic checkpoint", checkpoint_dir(self.run_dir), log, retry_s=0.0,
+            consequence="training goes on and the previous checkpoint stays valid; the next is "
+                        f"tried in {self.config.checkpoint_interval_s:g} s")
+        self.mark_guard = DiskGuard("parameter-version mark", self.versions.path, log,
+                                    consequence="actors keep their parameters until it is")
 
     def _declare(self) -> None:
         """Publishers, the parameters' queryable, the stats subscriber, the liveliness token
