@@ -157,7 +157,8 @@ def stop(procs: list[subprocess.Popen]) -> None:
             proc.wait()
 
 
-def services(args, endpoint: str, run_dir: Path, persist: bool | None) -> list:
+def services(args, endpoint: str, run_dir: Path, persist: bool | None,
+             max_pending: int = 100000) -> list:
     """A router, and (persist not None) a replay server with its limiter opened wide."""
     py = sys.executable
     procs = [spawn([py, "-m", "tpdeb.services.router", "--listen", endpoint, "--run-id", RUN_ID],
@@ -167,7 +168,7 @@ def services(args, endpoint: str, run_dir: Path, persist: bool | None) -> list:
             [py, "-m", "tpdeb.services.replay", "--listen", "", "--connect", endpoint,
              "--run-id", RUN_ID, "--env-id", args.env_id, "--run-dir", str(run_dir),
              "--persist", str(persist).lower(), "--replay-ratio", "1",
-             "--rate-error-buffer-steps", "1e15", "--max-pending-fragments", "100000"],
+             "--rate-error-buffer-steps", "1e15", "--max-pending-fragments", str(max_pending)],
             OUT / "replay.log"))
     time.sleep(args.startup_s)
     return procs

@@ -80,6 +80,7 @@ class SeqWindow:
 
 
 SNAPSHOT_FORMAT = 2  # of what snapshot() saves (2: msgpack state); a restore refuses any other
+PENALTY_S, PENALTY_MAX_S = 0.1, 30.0  # a bad message's sender is ignored this long, doubling
 MAX_HANDLED_PER_PASS = 512  # inbox items one loop pass takes before it ingests, samples, acks
 DISK_RETRY_S = 5.0  # while the log cannot be written, how often it is tried again
 MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
@@ -167,6 +168,8 @@ class ReplayServer:
         self.queued: dict[str, int] = defaultdict(int)  # sender -> its messages in the inbox
         self.queued_lock = threading.Lock()
         self.flooded = 0  # messages dropped on arrival: their sender had too many waiting
+        self.strikes: dict[str, int] = {}  # sender -> bad messages since its last good one
+        self.penalty: dict[str, float] = {}  # sender -> until when its messages are dropped
         self.log_bad = rate_limited(log)
         self.inserted_steps = 0
         self.samples_served = 0
@@ -198,11 +201,14 @@ class ReplayServer:
         self.token = s.liveliness().declare_token(k.alive("replay", 0))
 
     def _arrived(self, sample) -> None:
-        """A trajectory message (on a Zenoh thread): queued, unless its sender already has
-        `max_queued_per_sender` waiting: then dropped here, counted and said at a limited
-        rate."""
+        """A trajectory message (on a Zenoh thread): queued, unless its sender is serving a
+        penalty for bad messages or already has `max_queued_per_sender` waiting: then dropped
+        here and counted."""
         sender = str(sample.key_expr)
         with self.queued_lock:
+            if self.penalty.get(sender, 0.0) > time.monotonic():
+                self.flooded += 1
+                return
             waiting = self.queued[sender]
             if waiting >= self.config.max_queued_per_sender:
                 self.flooded += 1
@@ -262,6 +268,9 @@ class ReplayServer:
         if kind == "traj":
             with self.queued_lock:
                 self.queued[sender] -= 1
+                if self.penalty.get(sender, 0.0) > time.monotonic():
+                    self.flooded += 1  # queued before its sender's bad message: not decoded
+                    return
         limit = self.config.max_message_bytes
         try:
             if kind == "traj":
@@ -275,8 +284,16 @@ class ReplayServer:
             self.reject(exc.kind, sender, exc.detail)
 
     def reject(self, kind: str, sender: str, detail: str) -> None:
+        """A bad message: counted, said at a limited rate, and its sender's next messages are
+        dropped on arrival for a while (PENALTY_S, doubling per bad message up to
+        PENALTY_MAX_S, forgiven by its next good fragment), so garbage never queues ahead of
+        the others'."""
         self.bad[kind] += 1
         self.log_bad(kind, f"dropped a bad message from {sender} ({kind}): {detail}")
+        with self.queued_lock:
+            strikes = self.strikes[sender] = self.strikes.get(sender, 0) + 1
+            self.penalty[sender] = time.monotonic() + min(PENALTY_MAX_S,
+                                                          PENALTY_S * 2 ** (strikes - 1))
 
     def _receive_fragment(self, message: Fragment, payload: bytes, sender: str) -> None:
         if self.keys.actor_id_of(sender) != message.actor_id:
@@ -297,6 +314,9 @@ class ReplayServer:
             return
         ledger.pending.add(ident)
         self.pending.append((message, payload))
+        if sender in self.strikes:
+            with self.queued_lock:
+                self.strikes.pop(sender, None)
 
     def _ingest_pending(self) -> None:
         while self.pending and self.limiter.can_insert(self.spec.fragment_len):

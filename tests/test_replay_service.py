@@ -82,8 +82,8 @@ def test_a_fragment_is_acknowledged_once_ingested_and_a_resent_one_stored_once(r
 
 def test_fragments_that_fail_their_checks_are_counted_and_never_acknowledged(replay):
     server, bus = replay
-    bus.session().put(Keys(RUN).traj(3), b"\x93garbage")
-    send(bus, make_traj(seed=2, obs_dim=OBS_DIM + 1))  # the wrong shape for this run
+    bus.session().put(Keys(RUN).traj(5), b"\x93garbage")  # each from its own sender: a bad
+    send(bus, make_traj(seed=2, obs_dim=OBS_DIM + 1))  # message puts its sender in a penalty
     send(bus, make_traj(seed=3), actor_id=4)  # carries actor 3's id on actor 4's key
     server.poll(0.0)
     assert len(server.replay) == 0 and not acks_for(bus, 3) and not acks_for(bus, 4)
@@ -255,7 +255,11 @@ def test_a_flooding_sender_is_held_to_its_share_and_the_others_still_get_in(repl
     server.poll(0.0)
     assert len(server.replay) == 2  # the honest actor's fragments are in and acknowledged
     assert sorted(int(s) for a in acks_for(bus, 3) for s in a.seqs) == [0, 1]
-    assert server.flooded == 19 * limit and sum(server.bad.values()) == limit
-    assert server.stats()["bad/flood"] == 19 * limit
-    bus.session().put(flooder, b"\x93garbage")  # what was waiting is handled: room again
-    assert server.inbox.qsize() == 1
+    # its first bad message put it in the penalty box: the rest are not even decoded
+    assert sum(server.bad.values()) == 1 and server.flooded == 20 * limit - 1
+    assert server.stats()["bad/flood"] == 20 * limit - 1
+    bus.session().put(flooder, b"\x93garbage")  # dropped on arrival while the penalty lasts
+    assert server.inbox.qsize() == 0 and server.flooded == 20 * limit
+    send(bus, make_traj(seed=2))  # the honest actor is not held back by it
+    server.poll(0.0)
+    assert len(server.replay) == 3
