@@ -317,3 +317,32 @@ def test_a_refused_sync_leaves_no_torn_record_and_the_next_one_writes_what_it_he
     p.sync()
     assert p.unwritten == 0
     assert [r.decode() for r in read_records(segment, strict=True)] == ["a", "b", "c", "d"]
+
+
+def test_a_write_the_disk_refuses_inside_log_is_held_for_the_next_sync(tmp_path, monkeypatch):
+    import errno
+
+    import tpdeb.services.store.persistence as persistence
+
+    p = ReplayPersistence(tmp_path)
+    p.log(b"a")
+    p.sync()
+    real, full = persistence.append_record, [True]
+
+    def append_record(f, payload):
+        if full[0]:  # the buffer was written out part-way, then the disk was full
+            f.write(b"\x07" * 3)
+            f.flush()
+            raise OSError(errno.ENOSPC, "No space left on device")
+        real(f, payload)
+
+    monkeypatch.setattr(persistence, "append_record", append_record)
+    p.log(b"b")  # nothing raised: the server goes on, the next sync says why
+    p.log(b"c")
+    assert p.unwritten == 2
+    with pytest.raises(OSError, match="No space"):
+        p.sync()
+    full[0] = False
+    p.sync()
+    segment = next(tmp_path.glob("wal-*.log"))
+    assert [r.decode() for r in read_records(segment, strict=True)] == ["a", "b", "c"]

@@ -257,13 +257,17 @@ class ReplayPersistence:
     def log(self, payload: bytes) -> None:
         if self._wal is None:
             self._open_segment()
-        if self._unwritten:  # behind what a refused sync holds: the order is kept
-            self._unwritten.append(payload)
-        else:
-            append_record(self._wal, payload)
-            self._since_sync.append(payload)
-            self._dirty = True
         self.logged_records += 1
+        if self._unwritten:  # behind what a refused write holds: the order is kept
+            self._unwritten.append(payload)
+            return
+        self._since_sync.append(payload)
+        try:
+            append_record(self._wal, payload)  # a full buffer is written out here
+        except OSError:
+            self._cut_back()  # held with the rest since the last sync; the next sync says why
+            return
+        self._dirty = True
 
     @property
     def unwritten(self) -> int:
@@ -271,18 +275,18 @@ class ReplayPersistence:
         return len(self._unwritten)
 
     def sync(self) -> None:
-        """Make every logged record durable (one fsync for all of them). If the disk refuses,
-        the segment is cut back to what was synced before and OSError raised; the records
-        logged since are kept and written again by the next call."""
-        if self._unwritten:
-            for payload in self._unwritten:
-                append_record(self._wal, payload)
-            self._since_sync, self._unwritten = self._unwritten + self._since_sync, []
-            self._dirty = True
-        if not self._dirty:
-            return
+        """Make every logged record durable (one fsync for all of them). If the disk refuses
+        (here, or in a write of `log`), the segment is cut back to what was synced before and
+        OSError raised; the records logged since are kept and written again by the next call."""
         started = time.perf_counter()
         try:
+            if self._unwritten:
+                self._since_sync, self._unwritten = self._unwritten, []
+                self._dirty = True
+                for payload in self._since_sync:
+                    append_record(self._wal, payload)
+            if not self._dirty:
+                return
             self._wal.flush()
             os.fsync(self._wal.fileno())
         except OSError:
