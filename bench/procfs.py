@@ -7,6 +7,7 @@ import os
 import threading
 import time
 from collections.abc import Callable, Hashable
+from pathlib import Path
 
 import psutil
 
@@ -72,6 +73,10 @@ def service_name(argv: list[str]) -> str | None:
         index = argv.index("--actor-id")
         if index + 1 < len(argv):
             return f"actor-{argv[index + 1]}"
+    if "--config" in argv[:-1]:  # tpdeb-cluster starts each with run/config/{name}.toml
+        stem = Path(argv[argv.index("--config") + 1]).stem
+        if stem.startswith(role):
+            return stem
     return role
 
 

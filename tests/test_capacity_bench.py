@@ -1,5 +1,6 @@
-"""The capacity plan's arithmetic (bench/capacity.py): medians over kept runs of each run's best
-sender count, and the actors one replay and one learner can feed; made-up runs, nothing timed."""
+"""The benches' arithmetic: the capacity plan (bench/capacity.py: medians over kept runs of each
+run's best sender count, the actors one replay and one learner can feed) and how processes are
+named (bench/procfs.py); made-up inputs, nothing timed."""
 
 import sys
 from pathlib import Path
@@ -30,3 +31,15 @@ def test_the_plan_takes_medians_of_each_runs_best_sender_count():
     row = capacity.plan_table(combined).splitlines()[-1]
     # one replay: 88,000 / 5,000 = 17.6 actors; one learner: 220 × 512 / 16 / 5,000 = 1.4
     assert row == "| HalfCheetah-v5 | 5,000 | 17.6 | 1.4 (64×64, 16) |"
+
+
+def test_services_are_named_from_their_command_lines():
+    import procfs
+
+    assert procfs.service_name(["/v/bin/tpdeb-actor", "--config", "/r/config/actor-1.toml"]) \
+        == "actor-1"  # as tpdeb-cluster starts them: one name per actor, not a restart
+    assert procfs.service_name(["py", "-m", "tpdeb.services.actor", "--actor-id", "3"]) == \
+        "actor-3"
+    assert procfs.service_name(["/v/bin/tpdeb-cluster", "--config", "deploy/local.toml"]) == \
+        "cluster"
+    assert procfs.service_name(["/usr/bin/python3", "train.py"]) is None
