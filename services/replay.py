@@ -167,7 +167,7 @@ class ReplayServer:
         self.bad: dict[str, int] = defaultdict(int)
         self.queued: dict[str, int] = defaultdict(int)  # sender -> its messages in the inbox
         self.queued_lock = threading.Lock()
-        self.flooded = 0  # messages dropped on arrival: their sender had too many waiting
+        self.flooded = 0  # dropped undecoded: their sender was penalised or had too many waiting
         self.strikes: dict[str, int] = {}  # sender -> bad messages since its last good one
         self.penalty: dict[str, float] = {}  # sender -> until when its messages are dropped
         self.log_bad = rate_limited(log)
@@ -204,22 +204,19 @@ class ReplayServer:
         """A trajectory message (on a Zenoh thread): queued, unless its sender is serving a
         penalty for bad messages or already has `max_queued_per_sender` waiting: then dropped
         here and counted."""
-        sender = str(sample.key_expr)
+        sender, limit = str(sample.key_expr), self.config.max_queued_per_sender
         with self.queued_lock:
-            if self.penalty.get(sender, 0.0) > time.monotonic():
-                self.flooded += 1
-                return
-            waiting = self.queued[sender]
-            if waiting >= self.config.max_queued_per_sender:
+            penalised = self.penalty.get(sender, 0.0) > time.monotonic()
+            full = not penalised and self.queued[sender] >= limit
+            if penalised or full:
                 self.flooded += 1
             else:
-                self.queued[sender] = waiting + 1
-        if waiting >= self.config.max_queued_per_sender:
-            self.log_bad("flood", f"dropped a message from {sender}: "
-                                  f"{self.config.max_queued_per_sender} of its messages are "
-                                  "already waiting (max_queued_per_sender)")
-            return
-        self.inbox.put(("traj", sample))
+                self.queued[sender] += 1
+        if full:
+            self.log_bad("flood", f"dropped a message from {sender}: {limit} of its messages "
+                                  "are already waiting (max_queued_per_sender)")
+        if not (penalised or full):
+            self.inbox.put(("traj", sample))
 
     def _answer_spec(self, query) -> None:
         query.reply(self.keys.spec, self.spec_bytes)
