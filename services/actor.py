@@ -290,7 +290,7 @@ class ActorService:
             values={"env_steps": self.collector.env_steps, "sps": sps,
                     "param_version": self.collector.policy_version, "sent": self.sent,
                     "acked": self.outbox.acked, "resent": self.resent,
-                    "outbox": len(self.outbox)},
+                    "outbox": len(self.outbox), "incarnation": f"{self.incarnation:x}"},
             episode_returns=np.array([r for r, _ in episodes], np.float64),
             episode_lengths=np.array([n for _, n in episodes], np.int64))))
 

@@ -1,0 +1,82 @@
+"""The chaos bench's bookkeeping (bench/chaos.py): its seeded schedule of faults, the recovery
+time of a fault, the per-process version check and the fragment audit; made-up inputs, no
+cluster."""
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import chaos  # noqa: E402
+
+SERVICES = ["router", "replay", "learner", "actor-0", "actor-1"]
+
+
+def test_the_schedule_is_seeded_spaced_and_inside_the_window():
+    faults = chaos.schedule(7, 60.0, 1860.0, SERVICES)
+    assert faults == chaos.schedule(7, 60.0, 1860.0, SERVICES)
+    assert faults != chaos.schedule(8, 60.0, 1860.0, SERVICES)
+    assert faults[0].at_s == 60.0 and faults[-1].end_s <= 1860.0
+    for before, after in zip(faults, faults[1:], strict=False):
+        assert 10.0 <= after.at_s - before.end_s <= 30.0 + 0.1
+    for f in faults:
+        assert f.kind in chaos.KINDS
+        if f.kind == "kill":
+            assert f.hold_s == 0 and f.target in SERVICES
+        else:
+            assert 5.0 <= f.hold_s <= 20.0
+            assert (f.target == "link") == (f.kind == "partition")
+    # half an hour holds every kind, and every service is hit
+    assert {f.kind for f in faults} == set(chaos.KINDS)
+    assert {f.target for f in faults} == {*SERVICES, "link"}
+
+
+def learner(t, version):
+    return (t, "learner", "0", {"param_version": version})
+
+
+def test_recovery_waits_for_the_targets_acks_and_a_newer_learner_version():
+    fault = chaos.Fault(at_s=10.0, kind="hang", target="actor-1", hold_s=5.0)
+    stats = [learner(9.0, 40), learner(14.0, 41), learner(16.0, 41), learner(18.0, 42)]
+    acks = {(0, 1, 5): 15.5, (1, 2, 7): 17.0}
+    # actor 1's first ack after the end (15 s) is at 17 s; the learner's first version above
+    # 41 (the newest before the end) at 18 s
+    assert chaos.recovery_s(fault, acks, stats) == 3.0
+    router = chaos.Fault(at_s=10.0, kind="kill", target="router")
+    # anyone's ack (15.5 s) and a version above 40 (15 s): 5.5 s after the kill
+    assert chaos.recovery_s(router, acks, [learner(9.0, 40), learner(15.0, 41)]) == 5.5
+    assert chaos.recovery_s(fault, {(0, 1, 5): 15.5}, stats) is None  # actor 1 never came back
+
+
+def test_versions_are_judged_per_actor_process():
+    stats = [learner(1, 5), learner(2, 6),
+             (1, "actor", "0", {"param_version": 5, "incarnation": "a"}),
+             (2, "actor", "0", {"param_version": 6, "incarnation": "a"}),
+             (3, "actor", "0", {"param_version": 0, "incarnation": "b"}),  # restarted: anew
+             (4, "actor", "0", {"param_version": 7, "incarnation": "b"})]
+    assert chaos.versions_monotone(stats) == {"learner": True, "actor-0/a": True,
+                                              "actor-0/b": True}
+    stats.append((5, "actor", "0", {"param_version": 6, "incarnation": "b"}))
+    stats.append(learner(6, 3))
+    assert chaos.versions_monotone(stats) == {"learner": False, "actor-0/a": True,
+                                              "actor-0/b": False}
+
+
+def ledger(windows, ingested, duplicates=0):
+    return {"windows": windows, "ingested": ingested, "duplicates": duplicates}
+
+
+def test_the_audit_finds_lost_and_duplicated_fragments():
+    # actor 0, incarnation 9: seqs 0-3 and 6 stored; actor 1, incarnation 4: seqs 0-1
+    ledgers = {0: ledger({9: (4, [6])}, 5, duplicates=2), 1: ledger({4: (2, [])}, 2)}
+    acked = {(0, 9, 0), (0, 9, 3), (0, 9, 6), (1, 4, 1)}
+    clean = chaos.audit(acked, ledgers, inserted=7, logged=[])
+    assert (clean["lost"], clean["duplicated"], clean["stored"]) == (0, 0, 7)
+    assert clean["resends_recognised"] == 2
+    # acknowledged, stored nowhere: lost, unless the log after the snapshot holds it
+    missing = chaos.audit(acked | {(0, 9, 5), (1, 7, 0)}, ledgers, 7, [(1, 7, 0)])
+    assert missing["lost"] == 1 and missing["lost_examples"] == [[0, 9, 5]]
+    assert missing["duplicated"] == 0 and missing["stored"] == 8
+    # inserted twice: the buffers took in more than the distinct fragments
+    assert chaos.audit(acked, ledgers, inserted=8, logged=[])["duplicated"] == 1
+    # a logged record the snapshot already holds would go in again on restore
+    assert chaos.audit(acked, ledgers, 7, [(1, 4, 0)])["duplicated"] == 1
