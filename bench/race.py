@@ -214,9 +214,11 @@ def main() -> None:
                         help="no runs: RESULTS' race table and the figures")
     args = parser.parse_args()
     if args.report:
-        from race_report import report
+        from race_report import report, tuning_report
 
         report(DATA / args.tag, args.envs or list(TASKS))
+        if args.tag == "race":
+            tuning_report(DATA / "race-tune")
         return
     if args.peers and not peers_available():
         sys.exit("race: the peers need the bench-only extra: .venv/bin/pip install -e '.[peers]'")

@@ -21,6 +21,7 @@ SYSTEMS = {"tpdeb": "TPDEB", "sb3-sac": "SB3 SAC (zoo)", "sb3-ppo": "SB3 PPO (zo
 WINDOW = 20  # episodes in the smoothed curves
 GRID_S = 10.0
 BEGIN, END = "<!-- race:begin -->", "<!-- race:end -->"
+TUNE_BEGIN, TUNE_END = "<!-- race-tune:begin -->", "<!-- race-tune:end -->"
 
 
 def load(directory: Path) -> list[dict]:
@@ -180,3 +181,32 @@ def report(directory: Path, envs: list[str]) -> None:
     print(text)
     if str(tag) == "race" and replace_between(ROOT / "docs" / "RESULTS.md", BEGIN, END, text):
         print("\nupdated docs/RESULTS.md")
+
+
+def tuning_table(directory: Path) -> str:
+    """The race presets' tuning runs (docs/data/race-tune/{variant}/tpdeb/*.json), one row per
+    run: the variant's settings over the task's race preset as it was then, and where the run
+    stood at its marks."""
+    rows = []
+    for path in sorted(directory.glob("*/tpdeb/*.json")):
+        run = json.loads(path.read_text())
+        settings = " + ".join(run.get("overrides", [])) or "—"
+        for mark, at in run["marks"].items():
+            ev = at.get("eval", {}).get("mean_return")
+            rows.append((run["env_id"], path.parts[-3], settings, run["seed"],
+                         f"{float(mark) / 60:g}", f"{at['steps']:,}",
+                         f"{at['train_return']:,.0f}", f"{ev:,.0f}" if ev is not None else "—"))
+    rows.sort(key=lambda r: (r[0], r[1] != "preset", r[1], r[3], float(r[4])))
+    head = ("| task | variant | settings | seed | minutes | env steps | training return | "
+            "evaluation |\n|---|---|---|---|---|---|---|---|")
+    return "\n".join([head, *("| " + " | ".join(map(str, r)) + " |" for r in rows)])
+
+
+def tuning_report(directory: Path) -> None:
+    if not any(directory.glob("*/tpdeb/*.json")):
+        print(f"no finished tuning runs in {directory}")
+        return
+    text = tuning_table(directory)
+    print(text)
+    if replace_between(ROOT / "docs" / "RESULTS.md", TUNE_BEGIN, TUNE_END, text):
+        print("\nupdated docs/RESULTS.md (race presets' tuning runs)")

@@ -76,6 +76,20 @@ def test_the_report_compares_returns_at_the_end_and_the_time_to_reach_them():
     assert "| SB3 SAC (zoo) | 880 | 3.8 min | 3,412 | not in 15 min |" in reach
 
 
+def test_the_tuning_table_lists_every_run_at_its_marks_preset_first(tmp_path):
+    import json
+
+    for variant, overrides, train in (("rr8", ["replay_ratio=8"], 2100.0), ("preset", [], 1900.0)):
+        path = tmp_path / variant / "tpdeb" / "Hopper-v5__1.json"
+        path.parent.mkdir(parents=True)
+        path.write_text(json.dumps({"env_id": "Hopper-v5", "seed": 1, "overrides": overrides,
+                                    "marks": {"300": {"steps": 1234567, "train_return": train,
+                                                      "eval": {"mean_return": train + 5}}}}))
+    lines = race_report.tuning_table(tmp_path).splitlines()
+    assert lines[2:] == ["| Hopper-v5 | preset | — | 1 | 5 | 1,234,567 | 1,900 | 1,905 |",
+                         "| Hopper-v5 | rr8 | replay_ratio=8 | 1 | 5 | 1,234,567 | 2,100 | 2,105 |"]
+
+
 def test_zoo_settings_are_read_as_literals_and_nothing_else():
     import torch.nn as nn
 
