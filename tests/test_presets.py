@@ -55,6 +55,24 @@ def test_every_task_has_a_preset_whose_values_are_settings_with_a_reason(env_id)
     assert config.preset == str(path.resolve())
 
 
+@pytest.mark.parametrize("path", sorted((PRESETS_DIR / "race").glob("*.toml")),
+                         ids=lambda p: p.stem)
+def test_a_race_preset_is_its_tasks_preset_with_measured_changes(path):
+    # the file replaces the task's preset (--preset FILE): it repeats the per-step values, and
+    # every value it changes carries its measurement
+    race = load_preset(TrainConfig, path)
+    step = load_preset(TrainConfig, PRESETS_DIR / path.name)
+    changed = {k for k in race if race[k] != step.get(k)}
+    assert changed, f"{path} is its task's preset unchanged"
+    assert set(step) <= set(race), f"{path} leaves out {set(step) - set(race)}"
+    reasons = dict(preset_settings(path))
+    for name in changed:
+        assert len(reasons[name]) > 20, f"{path}: {name} has no measurement above it"
+    config = parse(["--env-id", path.stem, "--preset", str(path)])
+    assert all(getattr(config, k) == tuple(v) if isinstance(v, list) else getattr(config, k) == v
+               for k, v in race.items())
+
+
 def test_larger_networks_for_ant_and_humanoid():
     for env_id in ("Ant-v5", "Humanoid-v5"):
         assert min(parse(["--env-id", env_id]).hidden_sizes) > 64
