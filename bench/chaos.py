@@ -46,13 +46,16 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bandwidth import UNLIMITED  # noqa: E402  the link is there, but never the bottleneck
 from procfs import cmdline, descendants, proc_table, service_name  # noqa: E402
+
+from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode  # noqa: E402
+from tpdeb.services.net.session import open_session  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("kill", "hang", "partition")
 GAP_S = (10.0, 30.0)
 HOLD_S = (5.0, 20.0)
-UNLIMITED = 1e12  # bytes/s: the link is there, but never the bottleneck
 
 
 def say(text: str) -> None:
@@ -91,13 +94,9 @@ class Wire:
     message, with arrival times (seconds since `t0`)."""
 
     def __init__(self, endpoint: str, run_id: str, t0: float):
-        from tpdeb.protocol import Ack, Keys, Stats, decode
-        from tpdeb.services.net.session import open_session
-
         self.t0, self.lock = t0, threading.Lock()
         self.acks: dict[tuple[int, int, int], float] = {}
         self.stats: list[tuple[float, str, str, dict]] = []
-        self._decode, self._ack, self._stats = decode, Ack, Stats
         self.session = open_session("client", [], [endpoint], connect_timeout_s=60)
         keys = Keys(run_id)
         self.subscribers = [self.session.declare_subscriber(keys.ack_all, self._on_ack),
@@ -107,13 +106,13 @@ class Wire:
         return time.monotonic() - self.t0
 
     def _on_ack(self, sample) -> None:
-        ack, now = self._decode(sample.payload.to_bytes(), self._ack), self.now()
+        ack, now = decode(sample.payload.to_bytes(), Ack), self.now()
         with self.lock:
             for seq in ack.seqs.tolist():
                 self.acks.setdefault((ack.actor_id, ack.incarnation, seq), now)
 
     def _on_stats(self, sample) -> None:
-        stats, now = self._decode(sample.payload.to_bytes(), self._stats), self.now()
+        stats, now = decode(sample.payload.to_bytes(), Stats), self.now()
         with self.lock:
             self.stats.append((now, stats.role, stats.ident, dict(stats.values)))
 
@@ -303,7 +302,6 @@ class Chaos:
 def replay_keys(run_dir: Path) -> tuple[dict, int, list[tuple[int, int, int]]]:
     """The replay's final state: its ledgers, its insert counter and the keys of the log
     records after its snapshot."""
-    from tpdeb.protocol import Trajectory, decode
     from tpdeb.services.store.persistence import ReplayPersistence
 
     state, records = ReplayPersistence(run_dir / "replay").load(

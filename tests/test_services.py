@@ -153,9 +153,10 @@ def test_killed_actor_does_not_stop_the_run(procs, endpoint, client, tmp_path):
     assert maps_torch(learner.pid)
     # each actor process names its run in its stats (what tells a restarted actor's versions
     # apart from its predecessor's): two processes, two names
-    names = set()
-    while len(names) < 2:
+    names, deadline = set(), time.monotonic() + 60
+    while len(names) < 2 and time.monotonic() < deadline:
         names.add(next_stats(inbox, "actor", lambda v: "incarnation" in v)["incarnation"])
+    assert len(names) == 2, f"actor stats named {names}"
     os.kill(actors[0].pid, signal.SIGKILL)
     assert learner.wait(240) == 0, procs.output(learner)
     assert actors[1].wait(30) == 0, procs.output(actors[1])
