@@ -5,6 +5,7 @@ as it is: every run a real `tpdeb-cluster` with the task's preset and one settin
     python bench/ablate.py                        # run what is missing (hours: a background job)
     python bench/ablate.py --studies zeta tau     # some studies only
     python bench/ablate.py --report               # docs/ABLATIONS.md and docs/img/ablation/
+    python bench/ablate.py --shard 2/8            # on a larger machine: eight of these at once
 
 Studies (1M env steps, seeds 11-13 unless said; tuning seeds 1-3 are never used here):
     zeta      ζ ∈ {0, 0.1, 0.2, 0.4, 0.6, 1} on Ant (Fig 6a, and the policy loss: Fig 6b)
@@ -177,6 +178,22 @@ def execute(runs: list[Run], timeout_s: float, eval_episodes: int) -> None:
         run_one(args, run.env_id, ALGO, run.seed, flags=flags)
 
 
+def shard(text: str) -> tuple[int, int]:
+    """'K/N' → (K, N), 0 ≤ K < N."""
+    try:
+        k, n = (int(part) for part in text.split("/"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: a shard is K/N, e.g. 0/4") from None
+    if not 0 <= k < n:
+        raise argparse.ArgumentTypeError(f"{text!r}: K/N needs 0 ≤ K < N")
+    return k, n
+
+
+def share(runs: list[Run], k: int, n: int) -> list[Run]:
+    """Shard K of N: every N-th run still missing, from the K-th."""
+    return [r for r in runs if not r.path.exists()][k::n]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -186,6 +203,9 @@ def main() -> None:
                         help="no runs: write docs/ABLATIONS.md and its figures")
     parser.add_argument("--eval-episodes", type=int, default=10)
     parser.add_argument("--timeout-s", type=float, default=4 * 3600)
+    parser.add_argument("--shard", type=shard, metavar="K/N",
+                        help="only every N-th missing run, from the K-th (0 ≤ K < N): N "
+                             "processes with K = 0 … N-1 share the grid without overlap")
     args = parser.parse_args()
     if args.report:
         from ablate_report import report
@@ -193,6 +213,8 @@ def main() -> None:
         report(plan(list(studies())))
         return
     runs = plan(args.studies)
+    if args.shard:
+        runs = share(runs, *args.shard)
     if args.plan:
         done = 0
         for r in runs:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -112,7 +113,8 @@ def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> d
         wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,
                   overrides=list(args.set) + list(flags), wall_s=round(wall_s, 1),
-                  sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version())
+                  sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version(),
+                  cpus=os.cpu_count())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)
     save_json(path, result)

@@ -96,6 +96,22 @@ def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch, full_plan):
     assert len(calls) == 3
 
 
+def test_shards_split_the_missing_runs_without_overlap(tmp_path, monkeypatch, full_plan):
+    monkeypatch.setattr(paper, "DATA", tmp_path)
+    runs = ablate.plan(["zeta"])
+    done = runs[0].path
+    done.parent.mkdir(parents=True)
+    done.write_text("{}")
+    shares = [ablate.share(runs, k, 3) for k in range(3)]
+    assert sorted((r.path for s in shares for r in s), key=str) == sorted(
+        (r.path for r in runs[1:]), key=str)
+    assert all(len(s) in (len(runs[1:]) // 3, len(runs[1:]) // 3 + 1) for s in shares)
+    assert ablate.shard("2/8") == (2, 8)
+    for bad in ("8/8", "-1/2", "1", "a/b"):
+        with pytest.raises(Exception, match="K/N"):
+            ablate.shard(bad)
+
+
 def test_unknown_studies_are_refused():
     with pytest.raises(SystemExit, match="unknown study bogus; studies are zeta, tau"):
         ablate.plan(["bogus"])
