@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import statistics
 import textwrap
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -236,7 +237,8 @@ def section(study: Study, presets: dict[str, dict]) -> str:
 HEADER = """# Ablations: the paper's Section 3.2 and two claims of its abstract
 
 Every run is a real `tpdeb-cluster` (router, replay server, learner, 2 actors × 4 envs unless the
-study varies the actors) on one 2-core machine, with the task's preset (`deploy/presets/`) and
+study varies the actors) on a 2-core machine unless the line below says otherwise (the
+workers study, timed, always on it), with the task's preset (`deploy/presets/`) and
 one setting changed, for 1M env steps. Returns as in RESULTS: the training return is the mean
 episodic return over the last 10 % of steps, the evaluation return the final checkpoint's over
 10 deterministic episodes; "mean over training" is the mean of the smoothed mean curve (return
@@ -256,10 +258,12 @@ def report(runs) -> None:
     IMAGES.mkdir(parents=True, exist_ok=True)
     all_studies = studies()
     presets = {env_id: preset_values(env_id) for s in all_studies.values() for env_id in s.envs}
-    codes = sorted({json.loads(r.path.read_text()).get("code", "?") for r in runs
-                    if r.path.exists()})
-    parts = [HEADER, f"Runs present: {sum(r.path.exists() for r in runs)} of {len(runs)}"
-             + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)}." if codes else ".")]
+    made = [json.loads(r.path.read_text()) for r in runs if r.path.exists()]
+    codes = sorted({m.get("code", "?") for m in made})
+    hosts = Counter(m.get("host", "the 2-core machine (the learner on its CPU)") for m in made)
+    parts = [HEADER, f"Runs present: {len(made)} of {len(runs)}"
+             + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)}" if codes else "")
+             + "".join(f"; {n} on {host}" for host, n in hosts.most_common()) + "."]
     parts += [section(study, presets) for study in all_studies.values()]
     DOC.write_text("\n\n".join(parts) + "\n")
     print(f"wrote {DOC}")
