@@ -205,7 +205,8 @@ def main() -> None:
     parser.add_argument("--timeout-s", type=float, default=4 * 3600)
     parser.add_argument("--shard", type=shard, metavar="K/N",
                         help="only every N-th missing run, from the K-th (0 ≤ K < N): N "
-                             "processes with K = 0 … N-1 share the grid without overlap")
+                             "processes with K = 0 … N-1, started together, share the grid "
+                             "without overlap")
     args = parser.parse_args()
     if args.report:
         from ablate_report import report
