@@ -1,6 +1,7 @@
 """The ablation grid's plan and resume (bench/ablate.py) and what each run's file keeps
 (bench/runs.py), on made-up rows: nothing here trains."""
 
+import argparse
 import json
 import sys
 from pathlib import Path
@@ -108,7 +109,7 @@ def test_shards_split_the_missing_runs_without_overlap(tmp_path, monkeypatch, fu
     assert all(len(s) in (len(runs[1:]) // 3, len(runs[1:]) // 3 + 1) for s in shares)
     assert ablate.shard("2/8") == (2, 8)
     for bad in ("8/8", "-1/2", "1", "a/b"):
-        with pytest.raises(Exception, match="K/N"):
+        with pytest.raises(argparse.ArgumentTypeError, match="K/N"):
             ablate.shard(bad)
 
 
