@@ -142,8 +142,16 @@ def test_a_cluster_whose_disk_fills_for_a_while_finishes_and_loses_nothing_ackno
         assert out.count(what) <= 1, out  # said once per outage, if the outage reached it
     assert "write-ahead log cannot be written" in out and "takes writes again" in out, out
     assert "Traceback" not in out, out
-    acknowledged = sum(int(n.replace(",", "")) for n in re.findall(r"([\d,]+) acknowledged", out))
+
+    def total(pattern):
+        return sum(int(n.replace(",", "")) for n in re.findall(pattern, out))
+
+    acknowledged = total(r"([\d,]+) acknowledged")
+    sent = total(r"([\d,]+) fragments sent")
     ingested = int(re.search(r"([\d,]+) steps ingested", out).group(1).replace(",", ""))
     fragment_len = int(re.search(r"serving InvertedPendulum-v5 \(obs \d+, act \d+, T (\d+)\)",
                                  out).group(1))
-    assert ingested == fragment_len * acknowledged  # each acknowledged fragment in, once
+    assert ingested % fragment_len == 0, ingested
+    # Every acknowledged fragment is in; none is in twice. The actors stop first, so a fragment
+    # whose ack was still on its way when they did is in without being counted acknowledged.
+    assert acknowledged <= ingested // fragment_len <= sent, (acknowledged, ingested, sent)
