@@ -79,21 +79,24 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
     """Each system's return at the end of the budget, against SAC's 1M return."""
     lines = ["| task | " + " | ".join(f"{name} training | {name} evaluation"
                                         for name in SYSTEMS.values())
-             + " | SAC at 1M (source) | TPDEB training / SAC 1M |",
+             + " | SAC at 1M (source) | TPDEB / SAC 1M |",
              "|---|" + "---|---|" * len(SYSTEMS) + "---|---|"]
     for env_id in envs:
-        row, ours = [env_id], []
+        row, ours = [env_id], {}
         for system in SYSTEMS:
             runs = [r for r in results if r["env_id"] == env_id and r["system"] == system]
             if not runs:
                 row += ["—", "—"]
                 continue
             mark = final_mark(runs)
-            train = at(runs, mark, "train")
-            ours = train if system == "tpdeb" else ours
-            row += [cell(train), cell(at(runs, mark, "eval"))]
+            train, ev = at(runs, mark, "train"), at(runs, mark, "eval")
+            ours = {"training": train, "evaluation": ev} if system == "tpdeb" else ours
+            row += [cell(train), cell(ev)]
         bar, source = SAC_1M[env_id]
-        ratio = f"{statistics.mean(ours) / bar:.2f}" if ours else "—"
+        # like with like: CleanRL's figures are training returns, the zoo's evaluation returns
+        kind = "training" if source == "CleanRL" else "evaluation"
+        ratio = (f"{statistics.mean(ours[kind]) / bar:.2f} ({kind})" if ours and ours[kind]
+                 else "—")
         row += [f"{bar:,} ({source})", ratio]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)

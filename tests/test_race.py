@@ -69,7 +69,11 @@ def test_the_report_compares_returns_at_the_end_and_the_time_to_reach_them():
                   900.0)]
     table = race_report.budget_table(ours + theirs, ["Hopper-v5"])
     assert "3,412 ± 1 (n=2)" in table and "880 ± 0 (n=1)" in table
-    assert "2,310 (CleanRL)" in table and "| 1.48 |" in table
+    assert "2,310 (CleanRL)" in table and "| 1.48 (training) |" in table
+    # the zoo's SAC figure is an evaluation return: TPDEB's evaluation is set against it
+    ant = race_report.budget_table([run("tpdeb", "Ant-v5", 11, [(1, 0, 1.0)], 2308.0, 6924.0)],
+                                   ["Ant-v5"])
+    assert "4,616 (zoo) | 1.50 (evaluation) |" in ant
     reach = race_report.reach_table(ours + theirs, ["Hopper-v5"])
     # TPDEB's smoothed curve (a 20-episode trailing mean of 4·t) passes 880 near 230 s; SAC's
     # (of t) never reaches 3,412 in 15 minutes
