@@ -26,6 +26,8 @@ THRESHOLDS = {"HalfCheetah-v5": 5819, "Hopper-v5": 2410, "Walker2d-v5": 3479, "A
 SAC_1M = {"HalfCheetah-v5": (9635, "CleanRL"), "Hopper-v5": (2310, "CleanRL"),
           "Walker2d-v5": (3591, "CleanRL"), "Ant-v5": (4616, "zoo"),
           "Humanoid-v5": (4996, "CleanRL"), "Swimmer-v5": (346, "zoo")}
+# what each source's SAC figure is, so a comparison sets like against like
+SAC_KIND = {"CleanRL": "training", "zoo": "evaluation"}
 NAMES = {"tpdeb": "TPDEB", "impact": "IMPACT", "ppo-per": "PPO+PER"}
 WINDOW = 20
 BEGIN, END = "<!-- paper:begin -->", "<!-- paper:end -->"
@@ -123,10 +125,9 @@ def sac_table(results: list[dict], envs: list[str]) -> str:
         if not runs or env_id not in SAC_1M:
             continue
         bar, source = SAC_1M[env_id]
-        if source == "CleanRL":
-            ours, kind = [r["final_return"] for r in runs], "training"
-        else:
-            ours, kind = [r["eval"]["mean_return"] for r in runs if r.get("eval")], "evaluation"
+        kind = SAC_KIND[source]
+        ours = ([r["final_return"] for r in runs] if kind == "training"
+                else [r["eval"]["mean_return"] for r in runs if r.get("eval")])
         out.append(f"| {env_id} | {bar:,} | {source} ({kind}) | "
                    f"{against(ours, bar) if ours else '—'} | {len(ours)} |")
     return "\n".join(out)

@@ -12,7 +12,7 @@ import statistics
 from pathlib import Path
 
 import numpy as np
-from paper_report import SAC_1M, cell, replace_between, seeds  # noqa: I001  (bench/ is on sys.path)
+from paper_report import SAC_1M, SAC_KIND, cell, replace_between, seeds  # noqa: I001  (bench/ is on sys.path)
 from runs import ROOT
 
 from tpdeb.services.plot import band, save, smooth
@@ -93,8 +93,7 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
             ours = {"training": train, "evaluation": ev} if system == "tpdeb" else ours
             row += [cell(train), cell(ev)]
         bar, source = SAC_1M[env_id]
-        # like with like: CleanRL's figures are training returns, the zoo's evaluation returns
-        kind = "training" if source == "CleanRL" else "evaluation"
+        kind = SAC_KIND[source]
         ratio = (f"{statistics.mean(ours[kind]) / bar:.2f} ({kind})" if ours and ours[kind]
                  else "—")
         row += [f"{bar:,} ({source})", ratio]

@@ -148,7 +148,7 @@ def test_a_cluster_whose_disk_fills_for_a_while_finishes_and_loses_nothing_ackno
 
     acknowledged = total(r"([\d,]+) acknowledged")
     sent = total(r"([\d,]+) fragments sent")
-    ingested = int(re.search(r"([\d,]+) steps ingested", out).group(1).replace(",", ""))
+    ingested = total(r"([\d,]+) steps ingested")  # said once, by the replay
     fragment_len = int(re.search(r"serving InvertedPendulum-v5 \(obs \d+, act \d+, T (\d+)\)",
                                  out).group(1))
     assert ingested % fragment_len == 0, ingested
