@@ -42,10 +42,12 @@ def seeds(n: int) -> str:
 
 
 def cell(values: list[float]) -> str:
+    """Mean ± std over seeds; a single run is its value alone (a spread of one is not zero)."""
     if not values:
         return "—"
-    std = statistics.stdev(values) if len(values) > 1 else 0.0
-    return f"{statistics.mean(values):,.0f} ± {std:,.0f} (n={len(values)})"
+    if len(values) == 1:
+        return f"{values[0]:,.0f} (n=1)"
+    return f"{statistics.mean(values):,.0f} ± {statistics.stdev(values):,.0f} (n={len(values)})"
 
 
 def mean_curve(runs: list[dict], points: int = 200):
