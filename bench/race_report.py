@@ -79,8 +79,8 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
     """Each system's return at the end of the budget, against SAC's 1M return."""
     lines = ["| task | " + " | ".join(f"{name} training | {name} evaluation"
                                         for name in SYSTEMS.values())
-             + " | SAC at 1M (source) | TPDEB / SAC 1M |",
-             "|---|" + "---|---|" * len(SYSTEMS) + "---|---|"]
+             + " | SAC at 1M (source) | TPDEB / SAC 1M | TPDEB seeds at or above |",
+             "|---|" + "---|---|" * len(SYSTEMS) + "---|---|---|"]
     for env_id in envs:
         row, ours = [env_id], {}
         for system in SYSTEMS:
@@ -94,9 +94,10 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
             row += [cell(train), cell(ev)]
         bar, source = SAC_1M[env_id]
         kind = SAC_KIND[source]
-        ratio = (f"{statistics.mean(ours[kind]) / bar:.2f} ({kind})" if ours and ours[kind]
-                 else "—")
-        row += [f"{bar:,} ({source})", ratio]
+        mine = ours[kind] if ours else []
+        ratio = f"{statistics.mean(mine) / bar:.2f} ({kind})" if mine else "—"
+        above = f"{sum(v >= bar for v in mine)} of {len(mine)}" if mine else "—"
+        row += [f"{bar:,} ({source})", ratio, above]
         lines.append("| " + " | ".join(row) + " |")
     return "\n".join(lines)
 

@@ -69,7 +69,7 @@ def test_the_report_compares_returns_at_the_end_and_the_time_to_reach_them():
                   900.0)]
     table = race_report.budget_table(ours + theirs, ["Hopper-v5"])
     assert "3,412 ± 1 (n=2)" in table and "880 (n=1)" in table and "± 0 (n=1)" not in table
-    assert "2,310 (CleanRL)" in table and "| 1.48 (training) |" in table
+    assert "2,310 (CleanRL)" in table and "| 1.48 (training) | 2 of 2 |" in table
     # the zoo's SAC figure is an evaluation return: TPDEB's evaluation is set against it
     ant = race_report.budget_table([run("tpdeb", "Ant-v5", 11, [(1, 0, 1.0)], 2308.0, 6924.0)],
                                    ["Ant-v5"])
