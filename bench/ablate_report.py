@@ -8,12 +8,13 @@ import json
 import statistics
 import textwrap
 from collections import Counter
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
 from ablate import Cell, Study, is_preset, preset_values, studies  # noqa: I001  (bench/ is on sys.path)
 from paper import result_path
-from paper_report import VERDICT, cell, compare, mean_curve, seeds
+from paper_report import VERDICT, cell, compare, judgement, mean_curve, seeds, spread_test
 from runs import ROOT
 
 from tpdeb.services.plot import band, label_axes, save, smooth
@@ -35,11 +36,23 @@ PAPER = {
     "workers": "“A greater number of workers can increase sample throughput, enabling the robot "
                "to achieve better performance in a shorter period. However, as the number of "
                "workers increases, the performance gains diminish.”",
-    "priority": "The abstract: “trajectory-level prioritization captures high-quality samples "
+    "priority": "its abstract: “trajectory-level prioritization captures high-quality samples "
                 "more effectively than step-wise methods.”",
-    "kl": "The abstract: “KL-regularization enhances stability across asynchronous updates.”",
+    "kl": "its abstract: “KL-regularization enhances stability across asynchronous updates.”",
 }
 
+
+NOTES = {
+    "buffers": "N_u is the uniform buffer's capacity in env steps; the paper's prioritised "
+               "capacities, in steps, become capacities in whole fragments of the preset's "
+               "length (64 steps). One seed per cell: a cell's value carries that seed's noise, "
+               "so the verdict reads directions only.",
+    "workers": "On two cores every actor shares the machine with the learner and the other "
+               "actors. Against env steps the runs show what more workers give per sample; "
+               "against wall-clock, what they give on this machine, which is the honest "
+               "measure here: the actors do not add cores. Each run is timed, with nothing else "
+               "running.",
+}
 
 def cell_runs(study: Study, env_id: str, c: Cell, preset: dict) -> list[dict]:
     tag = "paper" if is_preset(c, preset) else f"ablation/{study.name}/{c.slug}"
@@ -194,6 +207,118 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> st
     return "\n".join(f"- {line}" for line in lines)
 
 
+COLLAPSE = 0.2  # a smoothed mean curve ending this fraction or more below its peak collapsed
+
+
+def peak_fall(runs: list[dict]) -> float:
+    """The fall of the smoothed mean curve from its peak by the end, as a fraction of the peak."""
+    _, mean, _ = mean_curve(runs)
+    return float((mean.max() - mean[-1]) / mean.max()) if mean.max() > 0 else 0.0
+
+
+def at_minutes(runs: list[dict], minutes: float) -> list[float]:
+    """Each run's smoothed return after `minutes` of the learner's clock."""
+    return [float(np.interp(60.0 * minutes, *clock_curve(r))) for r in runs]
+
+
+def value(label: str) -> float:
+    """The number a cell's label sets: "tau=0.05" → 0.05, "actors=4" → 4."""
+    return float(label.split("=")[1])
+
+
+def zeta_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    means = {k: statistics.mean(training(v)) for k, v in runs.items()}
+    best = max(means, key=means.get)
+    ends = (min(runs, key=value), max(runs, key=value))
+    parts = [(f"a peak inside the range (the best is {best}, not an end)", best not in ends)]
+    if "zeta=0.2" in runs and best != "zeta=0.2":
+        text, higher = spread_test("ζ 0.2 level with the best", best, training(runs[best]),
+                                   "zeta=0.2", training(runs["zeta=0.2"]))
+        parts.append((text, None if higher is None else not higher))
+    elif "zeta=0.2" in runs:
+        parts.append(("ζ 0.2 is the best", True))
+    if "zeta=0.2" in runs and "zeta=0" in runs:
+        parts.append(spread_test("ζ 0.2 above ζ 0 (the plain policy gradient)", "zeta=0.2",
+                                 training(runs["zeta=0.2"]), "zeta=0", training(runs["zeta=0"])))
+    return parts
+
+
+def tau_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    falls = {k: peak_fall(v) for k, v in runs.items()}
+    big = [k for k in runs if value(k) >= 0.01]
+    fell = [k for k in big if falls[k] >= COLLAPSE]
+    parts = [(f"τ ≥ 0.01 falls sharply mid-training (≥ {COLLAPSE:.0%} below its peak by the "
+              f"end): {len(fell)} of {len(big)} (" + "; ".join(
+                  f"τ {k.split('=')[1]} {falls[k]:.0%}" for k in big) + ")",
+              len(fell) * 2 > len(big))]
+    smallest = min(runs, key=value)
+    best = max(runs, key=lambda k: statistics.mean(training(runs[k])))
+    parts.append((f"{smallest} stays stable (falls {falls[smallest]:.0%})",
+                  falls[smallest] < COLLAPSE))
+    if best != smallest:
+        parts.append(spread_test(f"{smallest} limited", best, training(runs[best]), smallest,
+                                 training(runs[smallest])))
+    return parts
+
+
+def buffer_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    means = {k: statistics.mean(training(v)) for k, v in runs.items()}
+    nu, np_ = marginals(means, 0), marginals(means, 1)
+    top = max(np_, key=lambda x: x[1])
+    return [(f"a larger uniform buffer does better: N_u {nu[0][0]} {nu[0][1]:.2f} → "
+             f"{nu[-1][0]} {nu[-1][1]:.2f} (one seed: direction only)", nu[-1][1] > nu[0][1]),
+            (f"the largest prioritised buffer does worse than a smaller one: N_p {np_[-1][0]} "
+             f"{np_[-1][1]:.2f} against the best, {top[0]} {top[1]:.2f} (one seed: direction "
+             "only)", top[0] != np_[-1][0])]
+
+
+def worker_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    runs = {k: v for k, v in runs.items() if all(r.get("clock") for r in v)}
+    if len(runs) < 2:
+        return []
+    counts = sorted(runs, key=value)
+    end = min(clock_curve(r)[0][-1] for v in runs.values() for r in v) / 60.0
+    at = {k: at_minutes(runs[k], end) for k in counts}
+    means = [statistics.mean(at[k]) for k in counts]
+    parts = [spread_test(f"more workers, better sooner (after {end:.1f} training minutes)",
+                         counts[-1], at[counts[-1]], counts[0], at[counts[0]])]
+    gains = [b - a for a, b in pairwise(means)]
+    if len(gains) >= 2:
+        parts.append((f"the gains diminish: {' → '.join(counts)} add " + ", ".join(
+            f"{g:+,.0f}" for g in gains), all(b < a for a, b in pairwise(gains))))
+    return parts
+
+
+def pair_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    (a, ours), (b, theirs) = list(runs.items())[:2]
+    return [spread_test(f"{env_id}: {a} above {b}", a, training(ours), b, training(theirs))]
+
+
+def kl_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+    """Stability: the return, and how far the smoothed mean curve falls from its peak."""
+    (a, ours), (b, theirs) = list(runs.items())[:2]
+    return pair_parts(runs, env_id) + [(
+        f"{env_id}: {a} falls less from its peak than {b}: {peak_fall(ours):.0%} against "
+        f"{peak_fall(theirs):.0%}", peak_fall(ours) < peak_fall(theirs))]
+
+
+PARTS = {"zeta": zeta_parts, "tau": tau_parts, "buffers": buffer_parts, "workers": worker_parts,
+         "priority": pair_parts, "kl": kl_parts}
+
+
+def holds(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str:
+    """Whether the paper's statement holds here, part by part, with the numbers
+    (`paper_report.judgement`)."""
+    parts, missing = [], 0
+    for env_id, rows in by_env.items():
+        missing += sum(len(study.seeds) - len(r) for _, r in rows)
+        runs = {label: r for label, r in rows if r}
+        if len(runs) < 2:
+            continue
+        parts += PARTS[study.name](runs, env_id)
+    return judgement(parts, missing)
+
+
 def section(study: Study, presets: dict[str, dict]) -> str:
     by_env = {env_id: [(c.label, cell_runs(study, env_id, c, presets[env_id]))
                        for c in study.cells] for env_id in study.envs}
@@ -201,11 +326,13 @@ def section(study: Study, presets: dict[str, dict]) -> str:
            textwrap.fill(f"The paper: {PAPER[study.name]}", 98), "",
            f"`python bench/ablate.py --studies {study.name}` "
            f"({seeds(len(study.seeds))}: {', '.join(map(str, study.seeds))})", ""]
+    if study.name in NOTES:
+        out += [textwrap.fill(NOTES[study.name], 98), ""]
     if not any(runs for rows in by_env.values() for _, runs in rows):
         return "\n".join(out + ["No runs yet."])
     for env_id, rows in by_env.items():
-        out += [f"**{env_id}**", "", table(rows, "fall from peak" if study.name == "tau" else ""),
-                ""]
+        falls = "fall from peak" if study.name in ("tau", "kl") else ""
+        out += [f"**{env_id}**", "", table(rows, falls), ""]
         if study.name != "buffers":  # sixteen curves: the heatmap instead
             image = IMAGES / f"{study.name}-{env_id}.png"
             curves(rows, f"{env_id}: {study.name}", image)
@@ -231,6 +358,9 @@ def section(study: Study, presets: dict[str, dict]) -> str:
         out.append("")
     lines = verdict(study, by_env)
     out += ["What the runs say:", "", lines or "- too few runs for a verdict yet."]
+    judged = holds(study, by_env)
+    if judged:
+        out += ["", judged]
     return "\n".join(out)
 
 

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import paper_report  # noqa: I001  (bench/ is on sys.path)
 import race_report
-from bandwidth import ALGOS, BANDED, UNLIMITED, link_name
-from paper_report import VERDICT, cell, compare, replace_between, seeds
+from bandwidth import ALGOS, BANDED, LINKS, SEEDS, UNLIMITED, link_name
+from paper_report import VERDICT, cell, compare, judgement, replace_between, seeds, spread_test
 from runs import ROOT
 
 from tpdeb.services.plot import band, save
@@ -91,6 +91,34 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
     return lines
 
 
+def claim(results: list[dict], env_id: str) -> str:
+    """The paper's claim, TPDEB ahead "especially under constrained actor–learner bandwidth":
+    at the thinnest link run, TPDEB above each baseline beyond the seed spread, and its lead
+    larger there than on the widest link; provisional while the grid's runs are missing."""
+    mine = [r for r in results if r["env_id"] == env_id]
+    present = {(r["system"], r["link"], r["seed"]) for r in mine}
+    missing = sum((a, link, s) not in present for a in ALGOS for link in LINKS for s in SEEDS)
+
+    def returns(system: str, link: float) -> list[float]:
+        return final([r for r in mine if (r["system"], r["link"]) == (system, link)])
+
+    parts = []
+    for base in ALGOS[1:]:
+        shared = [link for link in links_of(mine) if returns("tpdeb", link) and returns(base, link)]
+        if not shared:
+            continue
+        wide, thin = shared[0], shared[-1]
+        parts.append(spread_test(f"TPDEB above {NAMES[base]} at {link_name(thin)}", "TPDEB",
+                                 returns("tpdeb", thin), NAMES[base], returns(base, thin)))
+        if len(shared) >= 2:
+            gap = {link: statistics.mean(returns("tpdeb", link)) - statistics.mean(
+                returns(base, link)) for link in (wide, thin)}
+            parts.append((f"TPDEB's lead over {NAMES[base]} larger at {link_name(thin)} than at "
+                          f"{link_name(wide)}: {gap[thin]:+,.0f} against {gap[wide]:+,.0f}",
+                          gap[thin] > gap[wide]))
+    return judgement(parts, missing)
+
+
 def figure(results: list[dict], env_id: str, path: Path) -> None:
     """Per link (columns): return against wall-clock minutes (top) and env steps (bottom)."""
     import matplotlib
@@ -139,6 +167,7 @@ def report(directory: Path) -> None:
         lines = verdict(results, env_id)
         parts += [f"**{env_id}**", table(results, env_id),
                   "\n".join(f"- {x}" for x in lines) or "- too few runs for a verdict yet.",
+                  claim(results, env_id) or "No verdict yet on the paper's claim.",
                   f"![{env_id} behind thin links](img/thinlink/{image.name})"]
     text = "\n\n".join(parts)
     print(text)

@@ -154,6 +154,34 @@ def compare(ours: list[float], theirs: list[float]) -> int | None:
 VERDICT = {1: "higher", 0: "within the seed spread", -1: "lower", None: "one seed"}
 
 
+def spread_test(text: str, a: str, ours: list[float], b: str,
+                theirs: list[float]) -> tuple[str, bool | None]:
+    """One part of a statement: (`text` with both values, whether `a` is higher than `b` beyond
+    the seed spread; None with one seed on a side)."""
+    outcome = compare(ours, theirs)
+    return (f"{text}: {a} {cell(ours)} against {b} {cell(theirs)}, {VERDICT[outcome]}",
+            None if outcome is None else outcome == 1)
+
+
+def judgement(parts: list[tuple[str, bool | None]], missing: int = 0) -> str:
+    """Whether a statement holds, from its parts (text, holds; None: one seed, no spread to
+    judge by): 'holds here' when every part does, 'holds in part', 'does not hold here'; no
+    verdict while a part rests on one seed; provisional while `missing` runs are missing."""
+    if not parts:
+        return ""
+    outcomes = [ok for _, ok in parts]
+    if None in outcomes:
+        head = "**No verdict yet on the paper's statement** (a part rests on one seed)"
+    else:
+        head = "**The paper's statement " + (
+            "holds here**" if all(outcomes) else "does not hold here**" if not any(outcomes)
+            else "holds in part**")
+    note = f" (provisional: {missing} run{'s' * (missing != 1)} still missing)" if missing else ""
+    return "\n".join([f"{head}{note}:", ""] + [
+        f"- {'yes' if ok else 'no' if ok is not None else 'one seed'} — {text}"
+        for text, ok in parts])
+
+
 def claim(title: str, quote: str, lines: list[str], outcomes: list[int], need: str) -> str:
     """One paper claim: what it says, what was measured per task, whether it holds."""
     if not outcomes:

@@ -150,6 +150,54 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     assert "2 actors 3,012 in 8.3 min" in text
     assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text
     assert "tau" in text and "too few runs for a verdict yet" in text  # τ: only the preset's
+    zeta = text.split("## zeta:")[1].split("## tau:")[0]
+    assert "**The paper's statement holds here** (provisional: 9 runs still missing)" in zeta
+    assert "- yes — ζ 0.2 above ζ 0 (the plain policy gradient): zeta=0.2 3,012 ± 1 (n=3) " \
+           "against zeta=0 1,012 ± 1 (n=3), higher" in zeta
+    kl = text.split("## kl:")[1]
+    # every kl run is present; the made-up curves never fall, so stability is not shown
+    assert "**The paper's statement holds in part**:" in kl
+    assert "- no — Hopper-v5: kl=preset falls less from its peak than kl=off: 0% against 0%" in kl
     images = {p.name for p in (tmp_path / "img").iterdir()}
     assert {"zeta-Ant-v5.png", "zeta-policy-loss-Ant-v5.png", "workers-clock-Ant-v5.png",
             "buffers-heatmap-Ant-v5.png", "kl-Hopper-v5.png"} <= images
+
+
+def rise_and_fall(peak: float, end: float, seed: int) -> dict:
+    """A run whose curve climbs to `peak` at 500k steps and ends at `end`."""
+    curve = [[s, (peak * s / 500_000 if s <= 500_000 else
+                  peak + (end - peak) * (s - 500_000) / 500_000) + seed]
+             for s in range(0, 1_000_001, 10_000)]
+    return {"final_return": end + seed, "curve": curve}
+
+
+def by_tau(levels: dict[str, tuple[float, float]], seeds=(11, 12, 13)) -> dict:
+    return {"Ant-v5": [(label, [rise_and_fall(*levels[label], s) for s in seeds])
+                       for label in levels]}
+
+
+def test_the_verdict_says_whether_each_part_of_the_statement_holds_with_its_numbers():
+    import ablate_report
+
+    tau = ablate.studies()["tau"]
+    papers = {"tau=0.001": (800, 800), "tau=0.005": (1500, 1500), "tau=0.01": (3000, 1500),
+              "tau=0.05": (3200, 1000), "tau=0.1": (3300, 900)}
+    text = ablate_report.holds(tau, by_tau(papers))
+    assert text.startswith("**The paper's statement holds here**:")
+    assert "- yes — τ ≥ 0.01 falls sharply mid-training (≥ 20% below its peak by the end): " \
+           "3 of 3" in text
+    assert "- yes — tau=0.001 stays stable (falls 0%)" in text
+    assert "- yes — tau=0.001 limited: tau=0.005 1,512 ± 1 (n=3) against tau=0.001 812 ± 1 " \
+           "(n=3), higher" in text
+
+    steady = {k: (v[0], v[0]) for k, v in papers.items()}  # nothing falls
+    text = ablate_report.holds(tau, by_tau(steady))
+    assert text.startswith("**The paper's statement holds in part**:")
+    assert "- no — τ ≥ 0.01 falls sharply mid-training (≥ 20% below its peak by the end): " \
+           "0 of 3" in text
+
+    one_seed = ablate_report.holds(tau, by_tau(papers, seeds=(11,)))
+    assert one_seed.startswith("**No verdict yet on the paper's statement** (a part rests on "
+                               "one seed) (provisional: 10 runs still missing):")
+    assert "- one seed — tau=0.001 limited" in one_seed
+    assert ablate_report.holds(tau, {"Ant-v5": [("tau=0.05", [])]}) == ""
