@@ -68,10 +68,16 @@ def evaluation(runs: list[dict]) -> list[float]:
     return [r["eval"]["mean_return"] for r in runs if r.get("eval")]
 
 
+def peak_and_end(runs: list[dict]) -> tuple[float, float]:
+    """The smoothed mean curve's peak and its last value."""
+    _, mean, _ = mean_curve(runs)
+    return float(mean.max()), float(mean[-1])
+
+
 def fall(runs: list[dict]) -> float:
     """How far the smoothed mean curve ends below its peak (0: it ends at its best)."""
-    _, mean, _ = mean_curve(runs)
-    return float(mean.max() - mean[-1])
+    peak, end = peak_and_end(runs)
+    return peak - end
 
 
 def clock_curve(run: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -212,8 +218,8 @@ COLLAPSE = 0.2  # a smoothed mean curve ending this fraction or more below its p
 
 def peak_fall(runs: list[dict]) -> float:
     """The fall of the smoothed mean curve from its peak by the end, as a fraction of the peak."""
-    _, mean, _ = mean_curve(runs)
-    return float((mean.max() - mean[-1]) / mean.max()) if mean.max() > 0 else 0.0
+    peak, end = peak_and_end(runs)
+    return (peak - end) / peak if peak > 0 else 0.0
 
 
 def at_minutes(runs: list[dict], minutes: float) -> list[float]:

@@ -58,6 +58,17 @@ def table(results: list[dict], env_id: str) -> str:
     return "\n".join(out)
 
 
+def leads(results: list[dict], env_id: str, base: str) -> list[tuple[float, float]]:
+    """(link, TPDEB's mean return minus `base`'s) for each link both ran, widest first."""
+    out = []
+    for link in links_of(results):
+        ours, theirs = (final([r for r in results if (r["env_id"], r["link"], r["system"]) ==
+                               (env_id, link, system)]) for system in ("tpdeb", base))
+        if ours and theirs:
+            out.append((link, statistics.mean(ours) - statistics.mean(theirs)))
+    return out
+
+
 def verdict(results: list[dict], env_id: str) -> list[str]:
     """TPDEB against each baseline per link, the gap's trend as the link thins, the band
     against the fixed ratio."""
@@ -65,7 +76,7 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
         return [r for r in results if (r["env_id"], r["link"], r["system"]) ==
                 (env_id, link, system)]
 
-    lines, gaps = [], []
+    lines = []
     for link in links_of(results):
         ours = final(runs_of("tpdeb", link))
         for base in ALGOS[1:]:
@@ -73,7 +84,6 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
             if ours and theirs:
                 lines.append(f"{link_name(link)}: TPDEB {cell(ours)} against {NAMES[base]} "
                              f"{cell(theirs)}: {VERDICT[compare(ours, theirs)]}")
-                gaps.append((link, base, statistics.mean(ours) - statistics.mean(theirs)))
         for algo in BANDED:
             banded, fixed = final(runs_of(f"{algo}-band", link)), final(runs_of(algo, link))
             if banded and fixed:
@@ -81,7 +91,7 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
                              f"against the fixed ratio {cell(fixed)}: "
                              f"{VERDICT[compare(banded, fixed)]}")
     for base in ALGOS[1:]:
-        mine = [(link, gap) for link, b, gap in gaps if b == base]
+        mine = leads(results, env_id, base)
         if len(mine) >= 2:
             widest, thinnest = mine[0], mine[-1]
             trend = "grows" if thinnest[1] > widest[1] else "does not grow"
@@ -104,18 +114,16 @@ def claim(results: list[dict], env_id: str) -> str:
 
     parts = []
     for base in ALGOS[1:]:
-        shared = [link for link in links_of(mine) if returns("tpdeb", link) and returns(base, link)]
-        if not shared:
+        gaps = leads(mine, env_id, base)
+        if not gaps:
             continue
-        wide, thin = shared[0], shared[-1]
+        (wide, wide_gap), (thin, thin_gap) = gaps[0], gaps[-1]
         parts.append(spread_test(f"TPDEB above {NAMES[base]} at {link_name(thin)}", "TPDEB",
                                  returns("tpdeb", thin), NAMES[base], returns(base, thin)))
-        if len(shared) >= 2:
-            gap = {link: statistics.mean(returns("tpdeb", link)) - statistics.mean(
-                returns(base, link)) for link in (wide, thin)}
+        if len(gaps) >= 2:
             parts.append((f"TPDEB's lead over {NAMES[base]} larger at {link_name(thin)} than at "
-                          f"{link_name(wide)}: {gap[thin]:+,.0f} against {gap[wide]:+,.0f}",
-                          gap[thin] > gap[wide]))
+                          f"{link_name(wide)}: {thin_gap:+,.0f} against {wide_gap:+,.0f}",
+                          thin_gap > wide_gap))
     return judgement(parts, missing)
 
 
