@@ -28,6 +28,11 @@ def load(directory: Path) -> list[dict]:
     return [json.loads(p.read_text()) for p in sorted(directory.glob("*/*.json"))]
 
 
+def runs_of(results: list[dict], env_id: str, system: str, link: float) -> list[dict]:
+    """The runs of one system on one task behind one link."""
+    return [r for r in results if (r["env_id"], r["link"], r["system"]) == (env_id, link, system)]
+
+
 def final(runs: list[dict], what: str = "train") -> list[float]:
     return race_report.at(runs, race_report.final_mark(runs), what) if runs else []
 
@@ -46,8 +51,7 @@ def table(results: list[dict], env_id: str) -> str:
            "| parameter lag | seeds |", "|---|---|---|---|---|---|---|---|"]
     for link in links_of(results):
         for system in NAMES:
-            runs = [r for r in results if (r["env_id"], r["link"], r["system"]) ==
-                    (env_id, link, system)]
+            runs = runs_of(results, env_id, system, link)
             if runs:
                 out.append(
                     f"| {link_name(link)} | {NAMES[system]} | {cell(final(runs))} | "
@@ -62,8 +66,7 @@ def leads(results: list[dict], env_id: str, base: str) -> list[tuple[float, floa
     """(link, TPDEB's mean return minus `base`'s) for each link both ran, widest first."""
     out = []
     for link in links_of(results):
-        ours, theirs = (final([r for r in results if (r["env_id"], r["link"], r["system"]) ==
-                               (env_id, link, system)]) for system in ("tpdeb", base))
+        ours, theirs = (final(runs_of(results, env_id, system, link)) for system in ("tpdeb", base))
         if ours and theirs:
             out.append((link, statistics.mean(ours) - statistics.mean(theirs)))
     return out
@@ -72,20 +75,17 @@ def leads(results: list[dict], env_id: str, base: str) -> list[tuple[float, floa
 def verdict(results: list[dict], env_id: str) -> list[str]:
     """TPDEB against each baseline per link, the gap's trend as the link thins, the band
     against the fixed ratio."""
-    def runs_of(system: str, link: float) -> list[dict]:
-        return [r for r in results if (r["env_id"], r["link"], r["system"]) ==
-                (env_id, link, system)]
-
     lines = []
     for link in links_of(results):
-        ours = final(runs_of("tpdeb", link))
+        ours = final(runs_of(results, env_id, "tpdeb", link))
         for base in ALGOS[1:]:
-            theirs = final(runs_of(base, link))
+            theirs = final(runs_of(results, env_id, base, link))
             if ours and theirs:
                 lines.append(f"{link_name(link)}: TPDEB {cell(ours)} against {NAMES[base]} "
                              f"{cell(theirs)}: {VERDICT[compare(ours, theirs)]}")
         for algo in BANDED:
-            banded, fixed = final(runs_of(f"{algo}-band", link)), final(runs_of(algo, link))
+            banded, fixed = (final(runs_of(results, env_id, system, link))
+                             for system in (f"{algo}-band", algo))
             if banded and fixed:
                 lines.append(f"{link_name(link)}: {NAMES[algo]} with the band {cell(banded)} "
                              f"against the fixed ratio {cell(fixed)}: "
@@ -139,8 +139,7 @@ def figure(results: list[dict], env_id: str, path: Path) -> None:
                              sharey="row")
     for col, link in enumerate(links):
         for n, system in enumerate(NAMES):
-            runs = [r for r in results if (r["env_id"], r["link"], r["system"]) ==
-                    (env_id, link, system) and r["episodes"]]
+            runs = [r for r in runs_of(results, env_id, system, link) if r["episodes"]]
             if not runs:
                 continue
             label = f"{NAMES[system]} ({seeds(len(runs))})"
