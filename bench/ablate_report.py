@@ -47,6 +47,15 @@ NOTES = {
                "capacities, in steps, become capacities in whole fragments of the preset's "
                "length (64 steps). One seed per cell: a cell's value carries that seed's noise, "
                "so the verdict reads directions only.",
+    "priority": "Step priority is PER over single transitions (the PPO+PER baseline's sampler) "
+                "inside TPDEB: B_p's share of a batch is as many single-step draws as the "
+                "trajectory sampler's fragments hold steps, each weighted by its own importance "
+                "weight. The learner receives every fragment a draw hit, whole, with a per-step "
+                "weight matrix: V-trace needs each drawn step's suffix. With the presets' batch "
+                "of 8 fragments of 64 steps and ζ 0.2, B_p's share is 2 fragments with trajectory "
+                "priority and 128 draws spread over up to all 64 of B_p's fragments with step "
+                "priority, so each update costs more. The verdict reads the return per env "
+                "step; what each costs is a line of its own.",
     "workers": "On two cores every actor shares the machine with the learner and the other "
                "actors. Against env steps the runs show what more workers give per sample; "
                "against wall-clock, what they give on this machine, which is the honest "
@@ -166,6 +175,17 @@ def versus(env_id: str, ours: list[dict], theirs: list[dict], what: str) -> str:
             f"{VERDICT[outcome]}")
 
 
+def cost(runs: list[dict]) -> str:
+    """The learner's median time per update and the mean minutes per run, with the commits the
+    runs ran on (a faster learner since one commit shows here, not only the setting)."""
+    update = [r["diagnostics"]["perf/update_ms"] for r in runs
+              if "perf/update_ms" in r.get("diagnostics", {})]
+    codes = sorted({r.get("code", "?") for r in runs})
+    per_update = f"{statistics.median(update):.0f} ms per update, " if update else ""
+    return (f"{per_update}{statistics.mean(r['wall_s'] for r in runs) / 60:.1f} min per run "
+            f"(commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
+
+
 def marginals(means: dict[str, float], part: int) -> list[tuple[str, float]]:
     """Per value of one buffer axis (0: N_u, 1: N_p), in the study's order, the mean over the
     other axis of the training return divided by the best cell's."""
@@ -210,6 +230,9 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> st
         elif study.name in ("priority", "kl"):
             (a, ours), (b, theirs) = rows[0], rows[1]
             lines.append(versus(env_id, ours, theirs, f"{a} vs {b}:"))
+            if study.name == "priority":
+                lines.append(f"{env_id}: what each costs: " + "; ".join(
+                    f"{label.split('=')[1]} {cost(runs)}" for label, runs in rows))
     return "\n".join(f"- {line}" for line in lines)
 
 

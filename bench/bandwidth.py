@@ -6,7 +6,9 @@ run given the same wall-clock budget (the env steps it reaches are part of the r
     python bench/bandwidth.py --band             # TPDEB and IMPACT with a replay-ratio band
     python bench/bandwidth.py --envs Ant-v5 --seeds 11
     python bench/bandwidth.py --plan             # the runs, done or not
-    python bench/bandwidth.py --report           # docs/BANDWIDTH.md and docs/img/thinlink/
+    python bench/bandwidth.py --report           # BENCHMARKS' thin-link section,
+                                                 # docs/img/thinlink/, the verdict in
+                                                 # RESULTS and README
 
 Every run is a real `tpdeb-cluster` (router, replay, learner, 2 actors × 4 envs) with the
 task's preset, `--set algo=…`, compression on (zstd trajectories, float16 parameters) and the

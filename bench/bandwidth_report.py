@@ -20,6 +20,9 @@ from tpdeb.services.plot import band, save
 DOC = ROOT / "docs" / "BENCHMARKS.md"
 IMAGES = ROOT / "docs" / "img" / "thinlink"
 BEGIN, END = "<!-- thinlink:begin -->", "<!-- thinlink:end -->"
+# the verdict in one paragraph per task, also in these two (between their own markers)
+HEADLINE_DOCS = [ROOT / "docs" / "RESULTS.md", ROOT / "README.md"]
+HEADLINE = "<!-- thinlink-verdict:begin -->", "<!-- thinlink-verdict:end -->"
 NAMES = {"tpdeb": "TPDEB", "impact": "IMPACT", "ppo-per": "PPO+PER",
          "tpdeb-band": "TPDEB + band", "impact-band": "IMPACT + band"}
 
@@ -101,17 +104,13 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
     return lines
 
 
-def claim(results: list[dict], env_id: str) -> str:
-    """The paper's claim, TPDEB ahead "especially under constrained actor–learner bandwidth":
-    at the thinnest link run, TPDEB above each baseline beyond the seed spread, and its lead
-    larger there than on the widest link; provisional while the grid's runs are missing."""
+def claim_parts(results: list[dict], env_id: str) -> tuple[list[tuple[str, bool | None]], int]:
+    """The paper's claim, TPDEB ahead "especially under constrained actor–learner bandwidth",
+    in parts: at the thinnest link run, TPDEB above each baseline beyond the seed spread, and
+    its lead larger there than on the widest link; with the count of the grid's runs missing."""
     mine = [r for r in results if r["env_id"] == env_id]
     present = {(r["system"], r["link"], r["seed"]) for r in mine}
     missing = sum((a, link, s) not in present for a in ALGOS for link in LINKS for s in SEEDS)
-
-    def returns(system: str, link: float) -> list[float]:
-        return final([r for r in mine if (r["system"], r["link"]) == (system, link)])
-
     parts = []
     for base in ALGOS[1:]:
         gaps = leads(mine, env_id, base)
@@ -119,12 +118,54 @@ def claim(results: list[dict], env_id: str) -> str:
             continue
         (wide, wide_gap), (thin, thin_gap) = gaps[0], gaps[-1]
         parts.append(spread_test(f"TPDEB above {NAMES[base]} at {link_name(thin)}", "TPDEB",
-                                 returns("tpdeb", thin), NAMES[base], returns(base, thin)))
+                                 final(runs_of(mine, env_id, "tpdeb", thin)), NAMES[base],
+                                 final(runs_of(mine, env_id, base, thin))))
         if len(gaps) >= 2:
             parts.append((f"TPDEB's lead over {NAMES[base]} larger at {link_name(thin)} than at "
                           f"{link_name(wide)}: {thin_gap:+,.0f} against {wide_gap:+,.0f}",
                           thin_gap > wide_gap))
-    return judgement(parts, missing)
+    return parts, missing
+
+
+def claim(results: list[dict], env_id: str) -> str:
+    return judgement(*claim_parts(results, env_id))
+
+
+def headline(results: list[dict], env_id: str) -> str:
+    """The verdict in one paragraph for RESULTS and README: the thinnest link's returns and
+    ratios, each lead's trend, the band there where it ran."""
+    parts, missing = claim_parts(results, env_id)
+    links = links_of([r for r in results if r["env_id"] == env_id])
+    if not parts or len(links) < 2:
+        return f"{env_id}: too few thin-link runs for a verdict yet."
+    state = paper_report.outcome(parts) or "no verdict yet (a part rests on one seed)"
+    note = f", provisional: {missing} of the grid's runs still missing" if missing else ""
+    thin = links[-1]
+    ours = final(runs_of(results, env_id, "tpdeb", thin))
+    rivals, trends = [], []
+    for base in ALGOS[1:]:
+        theirs = final(runs_of(results, env_id, base, thin))
+        gaps = leads(results, env_id, base)
+        if theirs and gaps:
+            ratio = statistics.mean(ours) / max(statistics.mean(theirs), 1e-9)
+            rivals.append(f"{ratio:.{1 if ratio >= 10 else 2}f}× {NAMES[base]}'s "
+                          f"{cell(theirs)} ({VERDICT[compare(ours, theirs)]})")
+            trends.append(f"over {NAMES[base]} {gaps[0][1]:+,.0f} → {gaps[-1][1]:+,.0f}")
+    mine = [r for r in results if r["env_id"] == env_id]
+    minutes = statistics.median(r["budget_s"] for r in mine) / 60
+    text = (f"**{env_id}, {minutes:g} minutes of training behind each link, "
+            f"{seeds(len({r['seed'] for r in mine}))}** — the paper's claim "
+            f"(TPDEB ahead \"especially under constrained actor–learner bandwidth\") {state}"
+            f"{note}. At {link_name(thin)} TPDEB reaches {cell(ours)}: " + " and ".join(rivals)
+            + f". TPDEB's lead, {link_name(links[0])} → {link_name(thin)}: " * bool(trends)
+            + ", ".join(trends) + ".")
+    for algo in BANDED:
+        banded, fixed = (final(runs_of(results, env_id, system, thin))
+                         for system in (f"{algo}-band", algo))
+        if banded and fixed:
+            text += (f" With the replay-ratio band, {NAMES[algo]} at {link_name(thin)}: "
+                     f"{cell(banded)} against {cell(fixed)} ({VERDICT[compare(banded, fixed)]}).")
+    return text
 
 
 def figure(results: list[dict], env_id: str, path: Path) -> None:
@@ -180,3 +221,8 @@ def report(directory: Path) -> None:
     print(text)
     if replace_between(DOC, BEGIN, END, text):
         print(f"\nupdated {DOC}")
+    verdicts = "\n\n".join(headline(results, env_id)
+                            for env_id in sorted({r["env_id"] for r in results}))
+    for doc in HEADLINE_DOCS:
+        if replace_between(doc, *HEADLINE, verdicts):
+            print(f"updated {doc}")

@@ -158,9 +158,19 @@ def spread_test(text: str, a: str, ours: list[float], b: str,
                 theirs: list[float]) -> tuple[str, bool | None]:
     """One part of a statement: (`text` with both values, whether `a` is higher than `b` beyond
     the seed spread; None with one seed on a side)."""
-    outcome = compare(ours, theirs)
-    return (f"{text}: {a} {cell(ours)} against {b} {cell(theirs)}, {VERDICT[outcome]}",
-            None if outcome is None else outcome == 1)
+    result = compare(ours, theirs)
+    return (f"{text}: {a} {cell(ours)} against {b} {cell(theirs)}, {VERDICT[result]}",
+            None if result is None else result == 1)
+
+
+def outcome(parts: list[tuple[str, bool | None]]) -> str | None:
+    """'holds here' when every part holds, 'does not hold here' when none does, 'holds in part'
+    between; None while a part rests on one seed."""
+    outcomes = [ok for _, ok in parts]
+    if None in outcomes:
+        return None
+    return ("holds here" if all(outcomes) else "does not hold here" if not any(outcomes)
+            else "holds in part")
 
 
 def judgement(parts: list[tuple[str, bool | None]], missing: int = 0) -> str:
@@ -169,13 +179,9 @@ def judgement(parts: list[tuple[str, bool | None]], missing: int = 0) -> str:
     verdict while a part rests on one seed; provisional while `missing` runs are missing."""
     if not parts:
         return ""
-    outcomes = [ok for _, ok in parts]
-    if None in outcomes:
-        head = "**No verdict yet on the paper's statement** (a part rests on one seed)"
-    else:
-        head = "**The paper's statement " + (
-            "holds here**" if all(outcomes) else "does not hold here**" if not any(outcomes)
-            else "holds in part**")
+    state = outcome(parts)
+    head = ("**No verdict yet on the paper's statement** (a part rests on one seed)"
+            if state is None else f"**The paper's statement {state}**")
     note = f" (provisional: {missing} run{'s' * (missing != 1)} still missing)" if missing else ""
     return "\n".join([f"{head}{note}:", ""] + [
         f"- {'yes' if ok else 'no' if ok is not None else 'one seed'} — {text}"

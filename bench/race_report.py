@@ -46,7 +46,10 @@ def mean_curve(runs: list[dict]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     budget = min(r["budget_s"] for r in runs)
     curves = [curve(r, budget) for r in runs]
     values = np.array([v for _, v in curves])
-    return curves[0][0], np.nanmean(values, axis=0), np.nanstd(values, axis=0)
+    mean, std = np.full((2, values.shape[1]), np.nan)
+    seen = np.isfinite(values).any(axis=0)  # before any run's first episode: NaN, no warning
+    mean[seen], std[seen] = np.nanmean(values[:, seen], axis=0), np.nanstd(values[:, seen], axis=0)
+    return curves[0][0], mean, std
 
 
 def time_to(runs: list[dict], threshold: float) -> str:

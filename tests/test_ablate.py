@@ -118,11 +118,13 @@ def test_unknown_studies_are_refused():
         ablate.plan(["bogus"])
 
 
-def made_up(level: float, seed: int, clock_rate: float = 2_000.0) -> dict:
+def made_up(level: float, seed: int, clock_rate: float = 2_000.0,
+            update_ms: float = 15.0) -> dict:
     curve = [[s, level * s / 1_000_000 + seed] for s in range(0, 1_000_001, 10_000)]
     return {"final_return": level + seed, "eval": {"mean_return": level + seed + 100},
             "curve": curve, "policy_loss": [[s, -s * 1e-8] for s, _ in curve],
-            "clock": [[s, s / clock_rate] for s, _ in curve], "wall_s": 500.0, "code": "abc1234"}
+            "clock": [[s, s / clock_rate] for s, _ in curve], "wall_s": 500.0, "code": "abc1234",
+            "diagnostics": {"perf/update_ms": update_ms}}
 
 
 def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch, full_plan):
@@ -137,7 +139,8 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
         level = levels.get(r.cell.label, 3000 if r.shared else None)
         if level is not None:
             r.path.parent.mkdir(parents=True, exist_ok=True)
-            r.path.write_text(json.dumps(made_up(level, r.seed)))
+            step = r.cell.label == "priority=step"
+            r.path.write_text(json.dumps(made_up(level, r.seed, update_ms=90.0 if step else 15.0)))
     ablate_report.report(full_plan)
     text = (tmp_path / "ABLATIONS.md").read_text()
     for name in ablate.studies():
@@ -146,6 +149,8 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     assert "Ant-v5: the best ζ is 0.2 (3,012)" in text
     assert "Ant-v5: priority=trajectory vs priority=step: 3,012 ± 1 (n=3) against 2,912 ± 1 " \
            "(n=3): higher" in text
+    assert "Ant-v5: what each costs: trajectory 15 ms per update, 8.3 min per run (commit " \
+           "abc1234); step 90 ms per update, 8.3 min per run (commit abc1234)" in text
     assert "Hopper-v5: kl=preset vs kl=off: 3,012 ± 1 (n=3) against 1,012 ± 1 (n=3): higher" in text
     assert "2 actors 3,012 in 8.3 min" in text
     assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text

@@ -74,6 +74,9 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
     monkeypatch.setattr(bandwidth_report, "IMAGES", tmp_path / "img")
     (tmp_path / "BENCHMARKS.md").write_text(
         f"# B\n\n{bandwidth_report.BEGIN}\nold\n{bandwidth_report.END}\nafter\n")
+    begin, end = bandwidth_report.HEADLINE
+    (tmp_path / "RESULTS.md").write_text(f"# R\n\n{begin}\n{end}\nmore\n")
+    monkeypatch.setattr(bandwidth_report, "HEADLINE_DOCS", [tmp_path / "RESULTS.md"])
     levels = {("tpdeb", 0): 5000, ("impact", 0): 4990, ("tpdeb", 65536): 3000,
               ("impact", 65536): 1000, ("tpdeb-band", 65536): 4000}
     for (system, link), level in levels.items():
@@ -97,6 +100,16 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
     assert "- yes — TPDEB's lead over IMPACT larger at 64 kB/s than at unlimited: +2,000 " \
            "against +10" in text
     assert (tmp_path / "img" / "HalfCheetah-v5.png").is_file()
+    results = (tmp_path / "RESULTS.md").read_text()
+    assert results.startswith(f"# R\n\n{begin}\n**HalfCheetah-v5, 10 minutes of training behind "
+                              "each link, 3 seeds** — the paper's claim (TPDEB ahead \"especially "
+                              "under constrained actor–learner bandwidth\") holds here, "
+                              "provisional: 24 of the grid's runs still missing. At 64 kB/s TPDEB "
+                              "reaches 3,012 ± 1 (n=3): 2.98× IMPACT's 1,012 ± 1 (n=3) "
+                              "(higher). TPDEB's lead, unlimited → 64 kB/s: over IMPACT +10 → "
+                              "+2,000. With the replay-ratio band, TPDEB at 64 kB/s: 4,012 ± 1 "
+                              "(n=3) against 3,012 ± 1 (n=3) (higher).")
+    assert results.endswith(f"{end}\nmore\n")
 
 
 def test_a_band_factor_below_one_is_refused(monkeypatch, capsys):
@@ -104,3 +117,14 @@ def test_a_band_factor_below_one_is_refused(monkeypatch, capsys):
     with pytest.raises(SystemExit):
         bandwidth.main()
     assert "--band-factor 0.5" in capsys.readouterr().err
+
+
+def test_the_headline_gives_no_verdict_on_one_seed_and_says_so_on_too_few_links():
+    runs = [made_up(system, link, 11, level) for system, link, level in (
+        ("tpdeb", 0, 5000), ("impact", 0, 4000), ("tpdeb", 65536, 3000), ("impact", 65536, 900))]
+    text = bandwidth_report.headline(runs, "HalfCheetah-v5")
+    assert "1 seed** — the paper's claim" in text
+    assert "bandwidth\") no verdict yet (a part rests on one seed), provisional: 32 of" in text
+    assert "TPDEB reaches 3,011 (n=1): 3.31× IMPACT's 911 (n=1) (one seed)" in text
+    assert bandwidth_report.headline(runs[:1], "HalfCheetah-v5") == (
+        "HalfCheetah-v5: too few thin-link runs for a verdict yet.")
