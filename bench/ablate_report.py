@@ -177,7 +177,7 @@ def versus(env_id: str, ours: list[dict], theirs: list[dict], what: str) -> str:
 
 def cost(runs: list[dict]) -> str:
     """The learner's median time per update and the mean minutes per run, with the commits the
-    runs ran on (a faster learner since one commit shows here, not only the setting)."""
+    runs ran on: a learner made faster between two commits shows here as much as a setting."""
     update = [r["diagnostics"]["perf/update_ms"] for r in runs
               if "perf/update_ms" in r.get("diagnostics", {})]
     codes = sorted({r.get("code", "?") for r in runs})

@@ -135,7 +135,8 @@ def headline(results: list[dict], env_id: str) -> str:
     """The verdict in one paragraph for RESULTS and README: the thinnest link's returns and
     ratios, each lead's trend, the band there where it ran."""
     parts, missing = claim_parts(results, env_id)
-    links = links_of([r for r in results if r["env_id"] == env_id])
+    mine = [r for r in results if r["env_id"] == env_id]
+    links = links_of(mine)
     if not parts or len(links) < 2:
         return f"{env_id}: too few thin-link runs for a verdict yet."
     state = paper_report.outcome(parts) or "no verdict yet (a part rests on one seed)"
@@ -151,7 +152,6 @@ def headline(results: list[dict], env_id: str) -> str:
             rivals.append(f"{ratio:.{1 if ratio >= 10 else 2}f}× {NAMES[base]}'s "
                           f"{cell(theirs)} ({VERDICT[compare(ours, theirs)]})")
             trends.append(f"over {NAMES[base]} {gaps[0][1]:+,.0f} → {gaps[-1][1]:+,.0f}")
-    mine = [r for r in results if r["env_id"] == env_id]
     minutes = statistics.median(r["budget_s"] for r in mine) / 60
     text = (f"**{env_id}, {minutes:g} minutes of training behind each link, "
             f"{seeds(len({r['seed'] for r in mine}))}** — the paper's claim "
