@@ -36,6 +36,13 @@ def runs_of(results: list[dict], env_id: str, system: str, link: float) -> list[
     return [r for r in results if (r["env_id"], r["link"], r["system"]) == (env_id, link, system)]
 
 
+def band_and_fixed(results: list[dict], env_id: str, algo: str,
+                   link: float) -> tuple[list[float], list[float]]:
+    """The returns of `algo` with the replay-ratio band and with its fixed ratio behind one link."""
+    return tuple(final(runs_of(results, env_id, system, link))
+                 for system in (f"{algo}-band", algo))
+
+
 def final(runs: list[dict], what: str = "train") -> list[float]:
     return race_report.at(runs, race_report.final_mark(runs), what) if runs else []
 
@@ -87,8 +94,7 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
                 lines.append(f"{link_name(link)}: TPDEB {cell(ours)} against {NAMES[base]} "
                              f"{cell(theirs)}: {VERDICT[compare(ours, theirs)]}")
         for algo in BANDED:
-            banded, fixed = (final(runs_of(results, env_id, system, link))
-                             for system in (f"{algo}-band", algo))
+            banded, fixed = band_and_fixed(results, env_id, algo, link)
             if banded and fixed:
                 lines.append(f"{link_name(link)}: {NAMES[algo]} with the band {cell(banded)} "
                              f"against the fixed ratio {cell(fixed)}: "
@@ -131,6 +137,16 @@ def claim(results: list[dict], env_id: str) -> str:
     return judgement(*claim_parts(results, env_id))
 
 
+def times(ours: list[float], theirs: list[float]) -> str:
+    """'1.39× ' (one decimal from 10×); '' where their mean return is at or below 0, which
+    makes a ratio meaningless."""
+    theirs_mean = statistics.mean(theirs)
+    if theirs_mean <= 0:
+        return ""
+    ratio = statistics.mean(ours) / theirs_mean
+    return f"{ratio:.{1 if ratio >= 10 else 2}f}× "
+
+
 def headline(results: list[dict], env_id: str) -> str:
     """The verdict in one paragraph for RESULTS and README: the thinnest link's returns and
     ratios, each lead's trend, the band there where it ran."""
@@ -148,9 +164,8 @@ def headline(results: list[dict], env_id: str) -> str:
         theirs = final(runs_of(results, env_id, base, thin))
         gaps = leads(results, env_id, base)
         if theirs and gaps:
-            ratio = statistics.mean(ours) / max(statistics.mean(theirs), 1e-9)
-            rivals.append(f"{ratio:.{1 if ratio >= 10 else 2}f}× {NAMES[base]}'s "
-                          f"{cell(theirs)} ({VERDICT[compare(ours, theirs)]})")
+            rivals.append(f"{times(ours, theirs)}{NAMES[base]}'s {cell(theirs)} "
+                          f"({VERDICT[compare(ours, theirs)]})")
             trends.append(f"over {NAMES[base]} {gaps[0][1]:+,.0f} → {gaps[-1][1]:+,.0f}")
     minutes = statistics.median(r["budget_s"] for r in mine) / 60
     text = (f"**{env_id}, {minutes:g} minutes of training behind each link, "
@@ -160,8 +175,7 @@ def headline(results: list[dict], env_id: str) -> str:
             + f". TPDEB's lead, {link_name(links[0])} → {link_name(thin)}: " * bool(trends)
             + ", ".join(trends) + ".")
     for algo in BANDED:
-        banded, fixed = (final(runs_of(results, env_id, system, thin))
-                         for system in (f"{algo}-band", algo))
+        banded, fixed = band_and_fixed(results, env_id, algo, thin)
         if banded and fixed:
             text += (f" With the replay-ratio band, {NAMES[algo]} at {link_name(thin)}: "
                      f"{cell(banded)} against {cell(fixed)} ({VERDICT[compare(banded, fixed)]}).")

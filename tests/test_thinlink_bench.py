@@ -128,3 +128,11 @@ def test_the_headline_gives_no_verdict_on_one_seed_and_says_so_on_too_few_links(
     assert "TPDEB reaches 3,011 (n=1): 3.31× IMPACT's 911 (n=1) (one seed)" in text
     assert bandwidth_report.headline(runs[:1], "HalfCheetah-v5") == (
         "HalfCheetah-v5: too few thin-link runs for a verdict yet.")
+
+
+def test_the_headline_gives_no_ratio_to_a_return_at_or_below_zero():
+    runs = [made_up(system, link, seed, level) for seed in (11, 12)
+            for system, link, level in (("tpdeb", 0, 5000), ("ppo-per", 0, 4000),
+                                        ("tpdeb", 65536, 3000), ("ppo-per", 65536, -100))]
+    text = bandwidth_report.headline(runs, "HalfCheetah-v5")
+    assert "TPDEB reaches 3,012 ± 1 (n=2): PPO+PER's -88 ± 1 (n=2) (higher)" in text
