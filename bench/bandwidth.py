@@ -96,16 +96,28 @@ def cluster_flags(run: Run, band_factor: float) -> list[str]:
     return flags
 
 
+# the learner's figures a result keeps: its key -> the metric (its value at the end of the run)
+LEARNER_FIGURES = {"samples_per_insert": "replay/samples_per_insert",
+                   "batch_wait": "perf/batch_wait_fraction",
+                   "sample_age": "replay/sample_age_updates"}
+
+
 def link_figures(rows: list[dict]) -> dict:
-    """What the link and the learner's staleness did over the run: bytes per env step each way
-    (the link's count at the end) and the mean parameter-version lag."""
+    """What the link and the learner did over the run: bytes per env step each way (the link's
+    count at the end), the mean parameter-version lag, and the learner's side at the end: the
+    replay ratio it reached (sampled per inserted step), the fraction of its time spent waiting
+    for a batch, and the mean age of a sampled fragment in learner updates."""
     link = [r for r in rows if "link/up_bytes_per_env_step" in r]
     lags = [r["actor/param_version_lag"] for r in rows if "actor/param_version_lag" in r]
-    return {
+    out = {
         "up_bytes_per_step": link[-1]["link/up_bytes_per_env_step"] if link else None,
         "down_bytes_per_step": link[-1]["link/down_bytes_per_env_step"] if link else None,
         "lag": statistics.mean(lags) if lags else None,
     }
+    for key, metric in LEARNER_FIGURES.items():
+        values = [r[metric] for r in rows if metric in r]
+        out[key] = values[-1] if values else None
+    return out
 
 
 def execute(runs: list[Run], minutes: float, band_factor: float, eval_episodes: int) -> None:

@@ -43,6 +43,22 @@ def band_and_fixed(results: list[dict], env_id: str, algo: str,
                  for system in (f"{algo}-band", algo))
 
 
+def band_effect(results: list[dict], env_id: str, algo: str, link: float) -> str:
+    """What the band changed on the learner's side, medians with the band against the fixed
+    ratio: the replay ratio reached, the time spent waiting for a batch, a sample's age and the
+    actors' parameter lag; '' for runs that did not record them."""
+    runs = [runs_of(results, env_id, system, link) for system in (f"{algo}-band", algo)]
+    parts = []
+    for key, what, fmt in (("samples_per_insert", "replay ratio", ".1f"),
+                           ("batch_wait", "learner waiting", ".0%"),
+                           ("sample_age", "sample age (updates)", ",.0f"),
+                           ("lag", "parameter lag", ",.0f")):
+        banded, fixed = (median(r, key, fmt) for r in runs)
+        if "—" not in (banded, fixed):
+            parts.append(f"{what} {banded} against {fixed}")
+    return f" ({', '.join(parts)})" if parts else ""
+
+
 def final(runs: list[dict], what: str = "train") -> list[float]:
     return race_report.at(runs, race_report.final_mark(runs), what) if runs else []
 
@@ -58,7 +74,8 @@ def links_of(results: list[dict]) -> list[float]:
 
 def table(results: list[dict], env_id: str) -> str:
     out = ["| link | system | training return | evaluation | env steps | bytes/step up / down "
-           "| parameter lag | seeds |", "|---|---|---|---|---|---|---|---|"]
+           "| parameter lag | replay ratio | learner waiting | seeds |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for link in links_of(results):
         for system in NAMES:
             runs = runs_of(results, env_id, system, link)
@@ -68,7 +85,8 @@ def table(results: list[dict], env_id: str) -> str:
                     f"{cell(final(runs, 'eval'))} | {median(runs, 'steps', ',.0f')} | "
                     f"{median(runs, 'up_bytes_per_step', ',.0f')} / "
                     f"{median(runs, 'down_bytes_per_step', ',.0f')} | "
-                    f"{median(runs, 'lag', '.1f')} | {len(runs)} |")
+                    f"{median(runs, 'lag', '.1f')} | {median(runs, 'samples_per_insert', '.1f')} "
+                    f"| {median(runs, 'batch_wait', '.0%')} | {len(runs)} |")
     return "\n".join(out)
 
 
@@ -98,7 +116,8 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
             if banded and fixed:
                 lines.append(f"{link_name(link)}: {NAMES[algo]} with the band {cell(banded)} "
                              f"against the fixed ratio {cell(fixed)}: "
-                             f"{VERDICT[compare(banded, fixed)]}")
+                             f"{VERDICT[compare(banded, fixed)]}"
+                             f"{band_effect(results, env_id, algo, link)}")
     for base in ALGOS[1:]:
         mine = leads(results, env_id, base)
         if len(mine) >= 2:

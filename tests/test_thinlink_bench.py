@@ -52,10 +52,14 @@ def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch):
     monkeypatch.setattr(bandwidth, "run_budgeted", fake_run)
     monkeypatch.setattr(bandwidth, "read_run_metrics", lambda run_dir: [
         {"global_step": 100, "link/up_bytes_per_env_step": 30.0,
-         "link/down_bytes_per_env_step": 2.0, "actor/param_version_lag": 3.0}])
+         "link/down_bytes_per_env_step": 2.0, "actor/param_version_lag": 3.0},
+        {"replay/samples_per_insert": 15.5, "perf/batch_wait_fraction": 0.25,
+         "replay/sample_age_updates": 40.0}])
     bandwidth.execute(runs[:1], minutes=1, band_factor=4.0, eval_episodes=0)
     saved = json.loads(runs[0].path.read_text())
     assert (saved["up_bytes_per_step"], saved["down_bytes_per_step"], saved["lag"]) == (30, 2, 3)
+    assert (saved["samples_per_insert"], saved["batch_wait"], saved["sample_age"]) == (15.5, 0.25,
+                                                                                      40)
     assert saved["system"] == "tpdeb" and saved["marks"]["60"]["train_return"] == 5.0
     bandwidth.execute(runs, minutes=1, band_factor=4.0, eval_episodes=0)
     assert len(calls) == 3  # the first was done: the other two algorithms only
@@ -66,7 +70,11 @@ def made_up(system: str, link: float, seed: int, level: float) -> dict:
     return {"env_id": "HalfCheetah-v5", "system": system, "link": link, "seed": seed,
             "budget_s": 600.0, "steps": 600_000, "episodes": episodes, "code": "abc1234",
             "marks": {"600": {"train_return": level + seed, "eval": {"mean_return": level}}},
-            "up_bytes_per_step": 40.0, "down_bytes_per_step": 3.0, "lag": 2.0}
+            "up_bytes_per_step": 40.0, "down_bytes_per_step": 3.0, "lag": 2.0,
+            # the learner's side: the band replays 4× as much and waits less
+            "samples_per_insert": 64.0 if "band" in system else 16.0,
+            "batch_wait": 0.15 if "band" in system else 0.75,
+            "sample_age": 1200.0 if "band" in system else 400.0}
 
 
 def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch):
@@ -91,9 +99,11 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
     assert "64 kB/s: TPDEB 3,012 ± 1 (n=3) against IMPACT 1,012 ± 1 (n=3): higher" in text
     assert "TPDEB's lead over IMPACT grows as the link thins: +10 at unlimited, +2,000 at " \
            "64 kB/s" in text
-    assert "64 kB/s: TPDEB with the band 4,012 ± 1 (n=3) against the fixed ratio 3,012" in text
-    assert "| 64 kB/s | TPDEB + band | 4,012 ± 1 (n=3) | 4,000 ± 0 (n=3) | 600,000 | 40 / 3 |" \
-           in text
+    assert "64 kB/s: TPDEB with the band 4,012 ± 1 (n=3) against the fixed ratio 3,012 ± 1 " \
+           "(n=3): higher (replay ratio 64.0 against 16.0, learner waiting 15% against 75%, " \
+           "sample age (updates) 1,200 against 400, parameter lag 2 against 2)" in text
+    assert "| 64 kB/s | TPDEB + band | 4,012 ± 1 (n=3) | 4,000 ± 0 (n=3) | 600,000 | 40 / 3 " \
+           "| 2.0 | 64.0 | 15% | 3 |" in text
     assert "**The paper's statement holds here** (provisional: 24 runs still missing):" in text
     assert "- yes — TPDEB above IMPACT at 64 kB/s: TPDEB 3,012 ± 1 (n=3) against IMPACT " \
            "1,012 ± 1 (n=3), higher" in text
