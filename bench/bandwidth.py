@@ -102,7 +102,7 @@ LEARNER_FIGURES = {"samples_per_insert": "replay/samples_per_insert",
                    "sample_age": "replay/sample_age_updates"}
 
 
-def link_figures(rows: list[dict]) -> dict:
+def run_figures(rows: list[dict]) -> dict:
     """What the link and the learner did over the run: bytes per env step each way (the link's
     count at the end), the mean parameter-version lag, and the learner's side at the end: the
     replay ratio it reached (sampled per inserted step), the fraction of its time spent waiting
@@ -136,7 +136,7 @@ def execute(runs: list[Run], minutes: float, band_factor: float, eval_episodes: 
                               "bandwidth")
         if result is not None:
             result.update(system=run.variant, algo=run.algo, band=run.band, link=run.link,
-                          flags=flags, **link_figures(read_run_metrics(run_dir)))
+                          flags=flags, **run_figures(read_run_metrics(run_dir)))
         finish(run.path, result, "bandwidth")
 
 

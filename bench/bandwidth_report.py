@@ -37,25 +37,23 @@ def runs_of(results: list[dict], env_id: str, system: str, link: float) -> list[
 
 
 def band_and_fixed(results: list[dict], env_id: str, algo: str,
-                   link: float) -> tuple[list[float], list[float]]:
-    """The returns of `algo` with the replay-ratio band and with its fixed ratio behind one link."""
-    return tuple(final(runs_of(results, env_id, system, link))
-                 for system in (f"{algo}-band", algo))
+                   link: float) -> tuple[list[dict], list[dict]]:
+    """The runs of `algo` with the replay-ratio band and with its fixed ratio behind one link."""
+    return tuple(runs_of(results, env_id, system, link) for system in (f"{algo}-band", algo))
 
 
-def band_effect(results: list[dict], env_id: str, algo: str, link: float) -> str:
+def band_effect(banded: list[dict], fixed: list[dict]) -> str:
     """What the band changed on the learner's side, medians with the band against the fixed
     ratio: the replay ratio reached, the time spent waiting for a batch, a sample's age and the
     actors' parameter lag; '' for runs that did not record them."""
-    runs = [runs_of(results, env_id, system, link) for system in (f"{algo}-band", algo)]
     parts = []
     for key, what, fmt in (("samples_per_insert", "replay ratio", ".1f"),
                            ("batch_wait", "learner waiting", ".0%"),
                            ("sample_age", "sample age (updates)", ",.0f"),
                            ("lag", "parameter lag", ",.0f")):
-        banded, fixed = (median(r, key, fmt) for r in runs)
-        if "—" not in (banded, fixed):
-            parts.append(f"{what} {banded} against {fixed}")
+        ours, theirs = median(banded, key, fmt), median(fixed, key, fmt)
+        if "—" not in (ours, theirs):
+            parts.append(f"{what} {ours} against {theirs}")
     return f" ({', '.join(parts)})" if parts else ""
 
 
@@ -112,12 +110,13 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
                 lines.append(f"{link_name(link)}: TPDEB {cell(ours)} against {NAMES[base]} "
                              f"{cell(theirs)}: {VERDICT[compare(ours, theirs)]}")
         for algo in BANDED:
-            banded, fixed = band_and_fixed(results, env_id, algo, link)
+            banded_runs, fixed_runs = band_and_fixed(results, env_id, algo, link)
+            banded, fixed = final(banded_runs), final(fixed_runs)
             if banded and fixed:
                 lines.append(f"{link_name(link)}: {NAMES[algo]} with the band {cell(banded)} "
                              f"against the fixed ratio {cell(fixed)}: "
                              f"{VERDICT[compare(banded, fixed)]}"
-                             f"{band_effect(results, env_id, algo, link)}")
+                             f"{band_effect(banded_runs, fixed_runs)}")
     for base in ALGOS[1:]:
         mine = leads(results, env_id, base)
         if len(mine) >= 2:
@@ -194,7 +193,7 @@ def headline(results: list[dict], env_id: str) -> str:
             + f". TPDEB's lead, {link_name(links[0])} → {link_name(thin)}: " * bool(trends)
             + ", ".join(trends) + ".")
     for algo in BANDED:
-        banded, fixed = band_and_fixed(results, env_id, algo, thin)
+        banded, fixed = map(final, band_and_fixed(results, env_id, algo, thin))
         if banded and fixed:
             text += (f" With the replay-ratio band, {NAMES[algo]} at {link_name(thin)}: "
                      f"{cell(banded)} against {cell(fixed)} ({VERDICT[compare(banded, fixed)]}).")
