@@ -4,6 +4,7 @@ as it is: every run a real `tpdeb-cluster` with the task's preset and one settin
     python bench/ablate.py --plan                 # every run: its settings, done or not
     python bench/ablate.py                        # run what is missing (hours: a background job)
     python bench/ablate.py --studies zeta tau     # some studies only
+    python bench/ablate.py --studies priority --envs Hopper-v5   # and some tasks only
     python bench/ablate.py --report               # docs/ABLATIONS.md and docs/img/ablation/
     python bench/ablate.py --shard 2/8            # on a larger machine: eight of these at once
 
@@ -19,7 +20,8 @@ Studies (1M env steps, seeds 11-13 unless said; tuning seeds 1-3 are never used 
 A run whose settings are the preset's is the comparison grid's own run (docs/data/paper/, made
 by `bench/paper.py` and shared with it); every other run leaves one small JSON under
 docs/data/ablation/{study}/{cell}/. A run whose file exists is skipped, so a stopped grid resumes
-where it stopped. The workers study times the runs: nothing else may run meanwhile.
+where it stopped. The workers study times the runs: nothing else may run meanwhile, and it makes
+its own preset run (2 actors), so that every cell it compares by the clock ran on the same code.
 """
 
 from __future__ import annotations
@@ -59,6 +61,7 @@ class Study:
     envs: tuple[str, ...]
     cells: tuple[Cell, ...]
     seeds: tuple[int, ...] = SEEDS
+    timed: bool = False  # then every cell is its own run, so all run on the same code
 
 
 def _fragments(steps: int, fragment_len: int) -> int:
@@ -88,7 +91,8 @@ def studies(fragment_len: int = 64) -> dict[str, Study]:
         Study("tau", "Fig 6c", ant,
               tuple(Cell(f"tau={v:g}", {"tau": v}) for v in (0.001, 0.005, 0.01, 0.05, 0.1))),
         Study("buffers", "Fig 6d", ant, buffers, seeds=(11,)),
-        Study("workers", "Fig 6e", ant, tuple(Cell(f"actors={n}", actors=n) for n in (1, 2, 4, 8))),
+        Study("workers", "Fig 6e", ant, tuple(Cell(f"actors={n}", actors=n) for n in (1, 2, 4, 8)),
+              timed=True),
         Study("priority", "abstract: trajectory vs step priority", both,
               (Cell("priority=trajectory", {"priority_mode": "trajectory"}),
                Cell("priority=step", {"priority_mode": "step"}))),
@@ -136,15 +140,22 @@ class Run:
         return self.tag == "paper"
 
 
-def plan(names: list[str], presets: dict[str, dict] | None = None) -> list[Run]:
+def plan(names: list[str], presets: dict[str, dict] | None = None,
+         envs: list[str] | None = None) -> list[Run]:
     """The runs of the named studies, seed-major (every cell gets its first seed before any gets
-    its second), a run shared by two studies listed once."""
+    its second), a run shared by two studies listed once; `envs`, if given, keeps those tasks'
+    runs only."""
     presets = presets if presets is not None else {}
     all_studies = studies()
     unknown = [n for n in names if n not in all_studies]
     if unknown:
         raise SystemExit(f"unknown study {', '.join(unknown)}; studies are "
                          f"{', '.join(all_studies)}")
+    tasks = sorted({e for n in names for e in all_studies[n].envs})
+    strange = [e for e in envs or () if e not in tasks]
+    if strange:
+        raise SystemExit(f"no study named here runs {', '.join(strange)}; they run "
+                         f"{', '.join(tasks)}")
     runs, seen = [], set()
     for seed in sorted({s for n in names for s in all_studies[n].seeds}):
         for name in names:
@@ -152,11 +163,13 @@ def plan(names: list[str], presets: dict[str, dict] | None = None) -> list[Run]:
             if seed not in study.seeds:
                 continue
             for env_id in study.envs:
+                if envs and env_id not in envs:
+                    continue
                 if env_id not in presets:
                     presets[env_id] = preset_values(env_id)
                 for cell in study.cells:
-                    tag = ("paper" if is_preset(cell, presets[env_id])
-                           else f"ablation/{name}/{cell.slug}")
+                    shared = not study.timed and is_preset(cell, presets[env_id])
+                    tag = "paper" if shared else f"ablation/{name}/{cell.slug}"
                     run = Run(name, cell, env_id, seed, tag)
                     if run.path not in seen:
                         seen.add(run.path)
@@ -198,6 +211,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--studies", nargs="+", default=list(studies()))
+    parser.add_argument("--envs", nargs="+", metavar="ENV_ID",
+                        help="only these tasks' runs (e.g. Hopper-v5)")
     parser.add_argument("--plan", action="store_true", help="no runs: list them")
     parser.add_argument("--report", action="store_true",
                         help="no runs: write docs/ABLATIONS.md and its figures")
@@ -213,7 +228,7 @@ def main() -> None:
 
         report(plan(list(studies())))
         return
-    runs = plan(args.studies)
+    runs = plan(args.studies, envs=args.envs)
     if args.shard:
         runs = share(runs, *args.shard)
     if args.plan:

@@ -60,7 +60,9 @@ NOTES = {
                "actors. Against env steps the runs show what more workers give per sample; "
                "against wall-clock, what they give on this machine, which is the honest "
                "measure here: the actors do not add cores. Each run is timed, with nothing else "
-               "running.",
+               "running, and every cell is the study's own run (2 actors is the preset, run "
+               "again rather than taken from the comparison grid), so all four ran on the same "
+               "code.",
 }
 
 def cell_runs(study: Study, env_id: str, c: Cell, preset: dict) -> list[dict]:

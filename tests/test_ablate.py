@@ -45,12 +45,14 @@ def test_the_plan_holds_the_papers_grid_of_settings(full_plan):
         f"tau={v}" for v in ("0.001", "0.005", "0.01", "0.1")}
     buffers = [r for r in full_plan if r.study == "buffers"]
     assert len(buffers) == 16 and {r.seed for r in buffers} == {11}
-    assert {r.cell.actors for r in full_plan if r.study == "workers"} == {1, 4, 8}
+    # timed: the workers study runs its preset cell (2 actors) itself, on the same code as the rest
+    assert {r.cell.actors for r in full_plan if r.study == "workers"} == {1, 2, 4, 8}
+    assert not any(r.shared for r in full_plan if r.study == "workers")
     assert {(e, label) for s, e, label in cells if s in ("priority", "kl")} == {
         ("Ant-v5", "priority=step"), ("Hopper-v5", "priority=trajectory"),
         ("Hopper-v5", "priority=step"), ("Ant-v5", "kl=off"), ("Hopper-v5", "kl=off")}
     assert {r.seed for r in full_plan} == {11, 12, 13}
-    assert len({r.path for r in full_plan}) == len(full_plan) == 70
+    assert len({r.path for r in full_plan}) == len(full_plan) == 73
 
 
 def test_runs_on_the_preset_are_the_comparison_grids_own(full_plan):
@@ -92,9 +94,9 @@ def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch, full_plan):
     ablate.execute(first, timeout_s=1, eval_episodes=0)
     assert calls == [("ablation/workers/actors-1", "Ant-v5", 11, [], ["--actors", "1"])]
     ablate.execute(runs, timeout_s=1, eval_episodes=0)  # the first is done: only the others
-    assert [c[4] for c in calls[1:]] == [["--actors", "4"], ["--actors", "8"]]
+    assert [c[4] for c in calls[1:]] == [["--actors", n] for n in ("2", "4", "8")]
     ablate.execute(runs, timeout_s=1, eval_episodes=0)
-    assert len(calls) == 3
+    assert len(calls) == 4
 
 
 def test_shards_split_the_missing_runs_without_overlap(tmp_path, monkeypatch, full_plan):
@@ -116,6 +118,16 @@ def test_shards_split_the_missing_runs_without_overlap(tmp_path, monkeypatch, fu
 def test_unknown_studies_are_refused():
     with pytest.raises(SystemExit, match="unknown study bogus; studies are zeta, tau"):
         ablate.plan(["bogus"])
+
+
+def test_a_task_filter_keeps_that_tasks_runs_and_refuses_a_task_no_study_runs(full_plan):
+    hopper = ablate.plan(["priority", "kl"], envs=["Hopper-v5"])
+    both = ablate.plan(["priority", "kl"])
+    assert hopper == [r for r in both if r.env_id == "Hopper-v5"]
+    # per seed: the preset (trajectory priority and KL on are the same run), step priority, no KL
+    assert len(hopper) == 3 * 3
+    with pytest.raises(SystemExit, match="no study named here runs Hopper-v5; they run Ant-v5"):
+        ablate.plan(["zeta"], envs=["Hopper-v5"])
 
 
 def made_up(level: float, seed: int, clock_rate: float = 2_000.0,
