@@ -123,6 +123,13 @@ def is_preset(cell: Cell, preset: dict) -> bool:
     return all(preset[key] == value for key, value in wanted.items())
 
 
+def tag_of(study: Study, cell: Cell, preset: dict) -> str:
+    """Where a cell's runs live: the comparison grid's own for a cell on the preset (but for a
+    timed study, whose cells must all run on the same code), else the study's."""
+    shared = not study.timed and is_preset(cell, preset)
+    return "paper" if shared else f"ablation/{study.name}/{cell.slug}"
+
+
 @dataclass(frozen=True)
 class Run:
     study: str
@@ -168,9 +175,7 @@ def plan(names: list[str], presets: dict[str, dict] | None = None,
                 if env_id not in presets:
                     presets[env_id] = preset_values(env_id)
                 for cell in study.cells:
-                    shared = not study.timed and is_preset(cell, presets[env_id])
-                    tag = "paper" if shared else f"ablation/{name}/{cell.slug}"
-                    run = Run(name, cell, env_id, seed, tag)
+                    run = Run(name, cell, env_id, seed, tag_of(study, cell, presets[env_id]))
                     if run.path not in seen:
                         seen.add(run.path)
                         runs.append(run)

@@ -12,7 +12,7 @@ from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
-from ablate import Cell, Study, is_preset, preset_values, studies  # noqa: I001  (bench/ is on sys.path)
+from ablate import Cell, Study, preset_values, studies, tag_of  # noqa: I001  (bench/ is on sys.path)
 from paper import result_path
 from paper_report import VERDICT, cell, compare, judgement, mean_curve, seeds, spread_test
 from runs import ROOT
@@ -66,7 +66,7 @@ NOTES = {
 }
 
 def cell_runs(study: Study, env_id: str, c: Cell, preset: dict) -> list[dict]:
-    tag = "paper" if is_preset(c, preset) else f"ablation/{study.name}/{c.slug}"
+    tag = tag_of(study, c, preset)
     paths = [result_path(tag, env_id, "tpdeb", 1_000_000, s) for s in study.seeds]
     return [json.loads(p.read_text()) for p in paths if p.exists()]
 

@@ -146,7 +146,8 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     monkeypatch.setattr(ablate_report, "DOC", tmp_path / "ABLATIONS.md")
     monkeypatch.setattr(ablate_report, "IMAGES", tmp_path / "img")
     levels = {"zeta=0": 1000, "zeta=0.2": 3000, "zeta=0.6": 2000, "priority=step": 2900,
-              "kl=off": 1000, "actors=1": 2500, "N_u=5k,N_p=1k": 1500, "N_u=1M,N_p=80k": 500}
+              "kl=off": 1000, "actors=1": 2500, "actors=2": 2800, "N_u=5k,N_p=1k": 1500,
+              "N_u=1M,N_p=80k": 500}
     for r in full_plan:
         level = levels.get(r.cell.label, 3000 if r.shared else None)
         if level is not None:
@@ -164,7 +165,8 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     assert "Ant-v5: what each costs: trajectory 15 ms per update, 8.3 min per run (commit " \
            "abc1234); step 90 ms per update, 8.3 min per run (commit abc1234)" in text
     assert "Hopper-v5: kl=preset vs kl=off: 3,012 ± 1 (n=3) against 1,012 ± 1 (n=3): higher" in text
-    assert "2 actors 3,012 in 8.3 min" in text
+    # the workers study's own 2-actor run (2,800), not the comparison grid's preset run (3,000)
+    assert "2 actors 2,812 in 8.3 min" in text
     assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text
     assert "tau" in text and "too few runs for a verdict yet" in text  # τ: only the preset's
     zeta = text.split("## zeta:")[1].split("## tau:")[0]
