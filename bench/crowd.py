@@ -6,11 +6,11 @@ batches.
     python bench/crowd.py --actors 8 --seconds 10 --no-flood   # a quick look
 
 A router and a replay server (real processes; the write-ahead log on, the rate limiter opened
-wide) and one crowd process: one Zenoh session with a publisher per actor key, each actor
-sending real fragments of the task (collected once, re-stamped) with an actor's window (8 in
-flight), and a flooder publishing garbage on its own actor key as fast as it can. This process
-plays the learner: sample requests one after another, each reply's latency timed. Every second
-the replay's RSS is read.
+wide), one crowd process: one Zenoh session with a publisher per actor key, each actor sending
+real fragments of the task (collected once, re-stamped) with an actor's window (8 in flight),
+and a flooder process of its own (as a misbehaving actor's host would be), publishing garbage on
+its own actor key as fast as it can. This process plays the learner: sample requests one after
+another, each reply's latency timed. Every second the replay's RSS is read.
 
 Prints and writes (bench/out/crowd/results.json; `--save` also to docs/data/crowd/): fragments/s
 acknowledged in all and per actor (min, median, max: nobody starved), the flooder's messages
@@ -62,7 +62,6 @@ def crowd(args) -> None:
 
     subscriber = session.declare_subscriber(keys.ack_all, on_ack)
     end = time.monotonic() + args.seconds
-    flood = {"sent": 0}
 
     def actor(i: int) -> None:
         publisher = declare_publisher(session, "traj", keys.traj(i))
@@ -75,23 +74,33 @@ def crowd(args) -> None:
                                                      seq=seq)))
             seq += 1
 
-    def flooder() -> None:
-        publisher = declare_publisher(session, "traj", keys.traj(args.actors))
-        while time.monotonic() < end:
-            publisher.put(b"\x93garbage")
-            flood["sent"] += 1
-
     threads = [threading.Thread(target=actor, args=(i,)) for i in range(args.actors)]
-    if args.flood:
-        threads.append(threading.Thread(target=flooder))
     for thread in threads:
         thread.start()
     for thread in threads:
         thread.join()
     time.sleep(1.0)  # the last acks
-    print(json.dumps({"acked": acked, "flood_sent": flood["sent"],
-                      "steps_per_fragment": int(fragments[0].num_steps)}), flush=True)
+    print(json.dumps({"acked": acked, "steps_per_fragment": int(fragments[0].num_steps)}),
+          flush=True)
     subscriber.undeclare()
+    session.close()
+
+
+def flooder(args) -> None:
+    """The flooder process (`--flooder`): garbage on actor key `args.actors`, as fast as it can,
+    through a session of its own; prints how many it sent."""
+    from capacity import RUN_ID
+
+    from tpdeb.protocol import Keys
+    from tpdeb.services.net.session import declare_publisher, open_session
+
+    session = open_session("client", [], [args.endpoint])
+    publisher = declare_publisher(session, "traj", Keys(RUN_ID).traj(args.actors))
+    end, sent = time.monotonic() + args.seconds, 0
+    while time.monotonic() < end:
+        publisher.put(b"\x93garbage")
+        sent += 1
+    print(json.dumps({"flood_sent": sent}), flush=True)
     session.close()
 
 
@@ -134,10 +143,13 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--save", action="store_true", help="also to docs/data/crowd/")
     parser.add_argument("--crowd", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--flooder", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.crowd:
         return crowd(args)
+    if args.flooder:
+        return flooder(args)
     import psutil
     from capacity import services, stop
 
@@ -155,16 +167,23 @@ def main() -> None:
             replay = psutil.Process(procs[1].pid)
             rss.append(replay.memory_info().rss)
             sampler.start()
-            crowd_proc = subprocess.Popen(
-                [sys.executable, str(Path(__file__).resolve()), "--crowd", "--endpoint",
-                 endpoint, "--env-id", args.env_id, "--actors", str(args.actors), "--seconds",
-                 str(args.seconds), "--window", str(args.window), "--seed", str(args.seed),
-                 *([] if args.flood else ["--no-flood"])], cwd=ROOT, stdout=subprocess.PIPE,
-                text=True)
-            while crowd_proc.poll() is None:
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--endpoint", endpoint,
+                   "--env-id", args.env_id, "--actors", str(args.actors), "--seconds",
+                   str(args.seconds), "--window", str(args.window), "--seed", str(args.seed)]
+            children = [subprocess.Popen([*cmd, role], cwd=ROOT, stdout=subprocess.PIPE,
+                                         text=True, start_new_session=True)
+                        for role in ("--crowd", *(["--flooder"] if args.flood else []))]
+            procs.extend(children)  # stopped with the services, also on failure
+            while any(c.poll() is None for c in children):
                 rss.append(replay.memory_info().rss)
                 time.sleep(1.0)
-            child = json.loads(crowd_proc.stdout.read().strip().splitlines()[-1])
+            child = {"flood_sent": 0}
+            for c, role in zip(children, ("crowd", "flooder")[:len(children)], strict=True):
+                lines = c.stdout.read().strip().splitlines()
+                if c.returncode != 0 or not lines:
+                    raise SystemExit(f"[crowd] the {role} process failed (exit {c.returncode}); "
+                                     "its error is above")
+                child.update(json.loads(lines[-1]))
         finally:
             done.set()
             sampler.join(15)
