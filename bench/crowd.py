@@ -13,10 +13,10 @@ its own actor key as fast as it can. This process plays the learner: sample requ
 another, each reply's latency timed. Every second the replay's RSS is read.
 
 Prints and writes (bench/out/crowd/results.json; `--save` also to docs/data/crowd/): fragments/s
-acknowledged in all and per actor (min, median, max: nobody starved), the flooder's messages
-and how many the replay dropped on arrival, the learner's reply latency (median, p99) and ready
-fraction, and the replay's RSS at start and at most (bounded by back-pressure, not growing with
-the flood). These are timings: nothing else may run meanwhile.
+acknowledged in all and per actor (min, median, max: whether anyone is starved), the
+flooder's messages and how many the replay dropped on arrival, the learner's reply latency
+(median, p99) and ready fraction, and the replay's RSS at start and at most (bounded by
+back-pressure, not growing with the flood). These are timings: nothing else may run meanwhile.
 """
 
 from __future__ import annotations
@@ -170,15 +170,15 @@ def main() -> None:
             cmd = [sys.executable, str(Path(__file__).resolve()), "--endpoint", endpoint,
                    "--env-id", args.env_id, "--actors", str(args.actors), "--seconds",
                    str(args.seconds), "--window", str(args.window), "--seed", str(args.seed)]
-            children = [subprocess.Popen([*cmd, role], cwd=ROOT, stdout=subprocess.PIPE,
-                                         text=True, start_new_session=True)
-                        for role in ("--crowd", *(["--flooder"] if args.flood else []))]
-            procs.extend(children)  # stopped with the services, also on failure
-            while any(c.poll() is None for c in children):
+            children = {role: subprocess.Popen([*cmd, f"--{role}"], cwd=ROOT, text=True,
+                                               stdout=subprocess.PIPE, start_new_session=True)
+                        for role in ("crowd", "flooder")[:1 + args.flood]}
+            procs.extend(children.values())  # stopped with the services, also on failure
+            while any(c.poll() is None for c in children.values()):
                 rss.append(replay.memory_info().rss)
                 time.sleep(1.0)
             child = {"flood_sent": 0}
-            for c, role in zip(children, ("crowd", "flooder")[:len(children)], strict=True):
+            for role, c in children.items():
                 lines = c.stdout.read().strip().splitlines()
                 if c.returncode != 0 or not lines:
                     raise SystemExit(f"[crowd] the {role} process failed (exit {c.returncode}); "
