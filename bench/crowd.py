@@ -7,13 +7,16 @@ batches.
 
 A router and a replay server (real processes; the write-ahead log on, the rate limiter opened
 wide), one crowd process: one Zenoh session with a publisher per actor key, each actor sending
-real fragments of the task (collected once, re-stamped) with an actor's window (8 in flight),
-and a flooder process of its own (as a misbehaving actor's host would be), publishing garbage on
-its own actor key as fast as it can. This process plays the learner: sample requests one after
+real fragments of the task (collected once, re-stamped) with an actor's window (8 in flight) and
+its resend of what stays unacknowledged; the actors take turns, so an unfairness that shows is
+the replay server's or the network's, not this process's. And a flooder process of its own (as
+a misbehaving actor's host would be), publishing garbage on its own actor key as fast as it
+can. This process plays the learner: sample requests one after
 another, each reply's latency timed. Every second the replay's RSS is read.
 
 Prints and writes (bench/out/crowd/results.json; `--save` also to docs/data/crowd/): fragments/s
-acknowledged in all and per actor (min, median, max: whether anyone is starved), the
+acknowledged in all and per actor (min, median, max: whether anyone is starved), the fragments
+resent (acks lost or late) and the duplicates the replay saw, the
 flooder's messages and how many the replay dropped on arrival, the learner's reply latency
 (median, p99) and ready fraction, and the replay's RSS at start and at most (bounded by
 back-pressure, not growing with the flood). These are timings: nothing else may run meanwhile.
@@ -22,6 +25,7 @@ back-pressure, not growing with the flood). These are timings: nothing else may 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import statistics
@@ -39,49 +43,57 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 
 def crowd(args) -> None:
-    """The crowd process (`--crowd`): prints one JSON line when its time is up."""
+    """The crowd process (`--crowd`): prints one JSON line when its time is up. Each actor keeps
+    what it sent in the actor's own outbox (the window) and, like a real actor, resends what is
+    unacknowledged after `--resend-after-s` (an ack may be lost: acks are not resent)."""
     import numpy as np
     from capacity import RUN_ID, fragments_of
 
     from tpdeb.protocol import Ack, Keys, decode, encode
+    from tpdeb.services.actor import Outbox
     from tpdeb.services.net.session import declare_publisher, open_session
 
     fragments = fragments_of(args.env_id, 16, args.seed)
     keys = Keys(RUN_ID)
     session = open_session("client", [], [args.endpoint])
     incarnation = int(np.random.default_rng(args.seed).integers(1, 2**62))
-    windows = [threading.Semaphore(args.window) for _ in range(args.actors)]
-    acked = [0] * args.actors
+    outboxes = [Outbox(args.window) for _ in range(args.actors)]
+    resent = [0] * args.actors
+    acked = threading.Event()  # some window has room again
 
     def on_ack(sample) -> None:
         ack = decode(sample.payload.to_bytes(), Ack)
         if ack.incarnation == incarnation and ack.actor_id < args.actors:
-            acked[ack.actor_id] += len(ack.seqs)
-            for _ in range(len(ack.seqs)):
-                windows[ack.actor_id].release()
+            outboxes[ack.actor_id].ack(ack.seqs)
+            acked.set()
 
     subscriber = session.declare_subscriber(keys.ack_all, on_ack)
-    end = time.monotonic() + args.seconds
-
-    def actor(i: int) -> None:
-        publisher = declare_publisher(session, "traj", keys.traj(i))
-        seq = 0
-        while time.monotonic() < end:
-            if not windows[i].acquire(timeout=0.5):
-                continue
-            publisher.put(encode(dataclasses.replace(fragments[seq % len(fragments)],
-                                                     actor_id=i, incarnation=incarnation,
-                                                     seq=seq)))
-            seq += 1
-
-    threads = [threading.Thread(target=actor, args=(i,)) for i in range(args.actors)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join()
+    publishers = [declare_publisher(session, "traj", keys.traj(i)) for i in range(args.actors)]
+    seqs = [0] * args.actors
+    end = last_check = time.monotonic()
+    end += args.seconds
+    while (now := time.monotonic()) < end:
+        # One round: every actor with room in its window sends one fragment. The actors take
+        # turns, so whatever unfairness shows is the replay server's, not this process's.
+        if now - last_check >= 0.5:
+            for i, outbox in enumerate(outboxes):
+                for _, payload in outbox.due(now, args.resend_after_s):
+                    publishers[i].put(payload)
+                    resent[i] += 1
+            last_check = now
+        ready = [i for i, outbox in enumerate(outboxes) if len(outbox) < args.window]
+        if not ready:
+            acked.wait(0.05)
+            acked.clear()
+        for i in ready:
+            payload = encode(dataclasses.replace(fragments[seqs[i] % len(fragments)], actor_id=i,
+                                                 incarnation=incarnation, seq=seqs[i]))
+            outboxes[i].add(seqs[i], payload, time.monotonic())
+            publishers[i].put(payload)
+            seqs[i] += 1
     time.sleep(1.0)  # the last acks
-    print(json.dumps({"acked": acked, "steps_per_fragment": int(fragments[0].num_steps)}),
-          flush=True)
+    print(json.dumps({"acked": [o.acked for o in outboxes], "resent": resent,
+                      "steps_per_fragment": int(fragments[0].num_steps)}), flush=True)
     subscriber.undeclare()
     session.close()
 
@@ -133,18 +145,24 @@ def learner(endpoint: str, stop: threading.Event, out: dict) -> None:
 
 
 def main() -> None:
+    from tpdeb.services.config.service import ActorServiceConfig
+
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env-id", default="HalfCheetah-v5")
     parser.add_argument("--actors", type=int, default=64)
     parser.add_argument("--seconds", type=float, default=60.0)
     parser.add_argument("--window", type=int, default=8)
+    parser.add_argument("--resend-after-s", type=float, default=ActorServiceConfig.resend_after_s,
+                        help="an unacknowledged fragment is sent again after this long "
+                             "(default: the actor's, %(default)s)")
     parser.add_argument("--no-flood", dest="flood", action="store_false")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--save", action="store_true", help="also to docs/data/crowd/")
+    parser.add_argument("--out", type=Path, default=OUT, help="results.json goes here")
     parser.add_argument("--crowd", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--flooder", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--endpoint", help=argparse.SUPPRESS)
+    parser.add_argument("--endpoint", help="the router's (default: a free port on loopback)")
     args = parser.parse_args()
     if args.crowd:
         return crowd(args)
@@ -155,9 +173,9 @@ def main() -> None:
 
     from tpdeb.services.launcher.plan import free_port
 
-    OUT.mkdir(parents=True, exist_ok=True)
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
-    rss, probe = [], {"latency_ms": [], "ready": [], "replay_stats": {}}
+    args.out.mkdir(parents=True, exist_ok=True)
+    endpoint = args.endpoint or f"tcp/127.0.0.1:{free_port()}"
+    rss, cpu, probe = [], [], {"latency_ms": [], "ready": [], "replay_stats": {}}
     with tempfile.TemporaryDirectory(prefix="crowd-") as tmp:
         args.startup_s = 4.0
         procs = services(args, endpoint, Path(tmp), persist=True, max_pending=1024)
@@ -169,14 +187,23 @@ def main() -> None:
             sampler.start()
             cmd = [sys.executable, str(Path(__file__).resolve()), "--endpoint", endpoint,
                    "--env-id", args.env_id, "--actors", str(args.actors), "--seconds",
-                   str(args.seconds), "--window", str(args.window), "--seed", str(args.seed)]
+                   str(args.seconds), "--window", str(args.window), "--seed", str(args.seed),
+                   "--resend-after-s", str(args.resend_after_s)]
             children = {role: subprocess.Popen([*cmd, f"--{role}"], cwd=ROOT, text=True,
                                                stdout=subprocess.PIPE, start_new_session=True)
                         for role in ("crowd", "flooder")[:1 + args.flood]}
             procs.extend(children.values())  # stopped with the services, also on failure
-            while any(c.poll() is None for c in children.values()):
+            watched = {"router": psutil.Process(procs[0].pid), "replay": replay,
+                       "learner": psutil.Process(),
+                       **{role: psutil.Process(c.pid) for role, c in children.items()}}
+            while all(c.poll() is None for c in children.values()):
                 rss.append(replay.memory_info().rss)
+                with contextlib.suppress(psutil.NoSuchProcess):  # a child just ended
+                    cpu.append((time.monotonic(), {role: sum(p.cpu_times()[:2])
+                                                   for role, p in watched.items()}))
                 time.sleep(1.0)
+            for c in children.values():
+                c.wait()
             child = {"flood_sent": 0}
             for role, c in children.items():
                 lines = c.stdout.read().strip().splitlines()
@@ -188,10 +215,25 @@ def main() -> None:
             done.set()
             sampler.join(15)
             stop(procs)
-    report(args, child, probe, rss)
+    report(args, child, probe, rss, cores_used(cpu))
 
 
-def report(args, child: dict, probe: dict, rss: list[int]) -> None:
+def _actor_sum(stats: dict, name: str, actors: int) -> float:
+    """A replay ledger figure summed over the crowd's actors (NaN without the replay's stats)."""
+    values = [stats[f"actor{i}/{name}"] for i in range(actors) if f"actor{i}/{name}" in stats]
+    return sum(values) if values else float("nan")
+
+
+def cores_used(cpu: list) -> dict[str, float]:
+    """Each process's CPU in cores from 5 s after the start (imports, the fragments collected)
+    to the last sample before the crowd's time was up."""
+    if len(cpu) < 7:
+        return {}
+    (t0, start), (t1, end) = cpu[5], cpu[-1]
+    return {role: (end[role] - start[role]) / (t1 - t0) for role in start}
+
+
+def report(args, child: dict, probe: dict, rss: list[int], cores: dict[str, float]) -> None:
     acked = child["acked"]
     per_s = [a / args.seconds for a in acked]
     latency = sorted(probe["latency_ms"]) or [float("nan")]
@@ -201,6 +243,11 @@ def report(args, child: dict, probe: dict, rss: list[int]) -> None:
         "env_steps_per_s": sum(per_s) * child["steps_per_fragment"],
         "per_actor_fragments_per_s": {"min": min(per_s), "median": statistics.median(per_s),
                                       "max": max(per_s)},
+        "acked_per_actor": acked,
+        "resent": sum(child["resent"]),
+        "actors_that_resent": sum(1 for r in child["resent"] if r),
+        "replay_duplicates": _actor_sum(probe["replay_stats"], "duplicates", args.actors),
+        "replay_dropped_busy": _actor_sum(probe["replay_stats"], "dropped_busy", args.actors),
         "flood_sent": child["flood_sent"],
         "flood_dropped_on_arrival": probe["replay_stats"].get("bad/flood", float("nan")),
         "bad_messages": probe["replay_stats"].get("bad_messages", float("nan")),
@@ -209,9 +256,10 @@ def report(args, child: dict, probe: dict, rss: list[int]) -> None:
         "learner_requests": len(probe["ready"]),
         "learner_ready_fraction": (sum(probe["ready"]) / len(probe["ready"])
                                    if probe["ready"] else float("nan")),
-        "replay_rss_mib": {"start": rss[0] / 2**20, "max": max(rss) / 2**20}}
+        "replay_rss_mib": {"start": rss[0] / 2**20, "max": max(rss) / 2**20},
+        "cores_used": cores}
     text = json.dumps(result, indent=1)
-    (OUT / "results.json").write_text(text)
+    (args.out / "results.json").write_text(text)
     if args.save:
         DATA.mkdir(parents=True, exist_ok=True)
         (DATA / f"{args.env_id}__{args.actors}actors{'__flood' if args.flood else ''}.json"
@@ -221,6 +269,9 @@ def report(args, child: dict, probe: dict, rss: list[int]) -> None:
           f"{args.seconds:g} s: {result['fragments_per_s']:,.0f} fragments/s acknowledged "
           f"({result['env_steps_per_s']:,.0f} env steps/s); per actor min {a['min']:.1f}, "
           f"median {a['median']:.1f}, max {a['max']:.1f}")
+    print(f"[crowd] {result['resent']:,} fragments resent by {result['actors_that_resent']} "
+          f"actors (acks lost or late); the replay saw {result['replay_duplicates']:,.0f} "
+          f"duplicates and turned {result['replay_dropped_busy']:,.0f} away while busy")
     print(f"[crowd] flooder: {result['flood_sent']:,} garbage messages sent, "
           f"{result['flood_dropped_on_arrival']:,.0f} dropped on arrival by the replay "
           f"({result['bad_messages']:,.0f} bad messages in all)")
@@ -228,6 +279,7 @@ def report(args, child: dict, probe: dict, rss: list[int]) -> None:
     print(f"[crowd] learner: {result['learner_requests']:,} requests, median "
           f"{lat['median']:.1f} ms, p99 {lat['p99']:.1f} ms, "
           f"{100 * result['learner_ready_fraction']:.0f} % with a batch")
+    print("[crowd] CPU in cores: " + ", ".join(f"{role} {c:.2f}" for role, c in cores.items()))
     r = result["replay_rss_mib"]
     print(f"[crowd] replay RSS: {r['start']:.0f} MiB at start, {r['max']:.0f} MiB at most")
 

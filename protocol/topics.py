@@ -47,8 +47,10 @@ class Topic:
 TOPICS: tuple[Topic, ...] = (
     Topic("traj", "put", (m.Trajectory,), ("actor",), ("replay",), congestion="block",
           own_key=True, why="never dropped: back-pressure, resent until acknowledged"),
-    Topic("ack", "put", (m.Ack,), ("replay",), ("actor",), priority="data_high", express=True,
-          why="small and unblocks an actor: ahead of bulk data on a thin link"),
+    Topic("ack", "put", (m.Ack,), ("replay",), ("actor",), priority="data_high",
+          why="small and unblocks an actor: ahead of bulk data on a thin link. Not express: "
+              "a pass's acks share a batch; one batch each overflowed the queue under a "
+              "crowd, and a dropped ack holds its fragment until the resend"),
     Topic("sample", "query", (m.SampleRequest, m.SampleReply), ("replay",), ("learner",),
           why="several in flight, so a batch is usually waiting when an update ends"),
     Topic("priorities", "put", (m.PriorityUpdate,), ("learner",), ("replay",)),

@@ -40,7 +40,7 @@ def test_only_the_learner_answers_for_parameters_and_only_the_replay_for_samples
 
 
 @pytest.mark.parametrize("name, expected", [
-    ("traj", ("DATA", "BLOCK", False)), ("ack", ("DATA_HIGH", "DROP", True)),
+    ("traj", ("DATA", "BLOCK", False)), ("ack", ("DATA_HIGH", "DROP", False)),
     ("control", ("INTERACTIVE_HIGH", "BLOCK", False)), ("params", ("DATA_LOW", "DROP", False)),
 ])
 def test_the_services_qos_is_the_tables(name, expected):
