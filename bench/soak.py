@@ -44,6 +44,7 @@ from procfs import SERVICES, cmdline, descendants, proc_table, rss_kib, service_
 
 ROOT = Path(__file__).resolve().parents[1]
 WINDOW_S = 60.0  # the warm-up and final references are medians over one minute each
+GAUGES = ("replay disk (MiB)", "env steps/s", "update (ms)")  # sampled beside the RSS
 PROGRESS = re.compile(r"^\[learner\] tpdeb-learner: \[\s*([\d,]+)/[\d,]+\]")
 
 
@@ -108,17 +109,17 @@ def gauges(run_dir: Path, progress: list[tuple[float, int]]) -> dict[str, float]
     out = {}
     replay = run_dir / "replay"
     if replay.is_dir():
-        out["replay disk (MiB)"] = sum(f.stat().st_size for f in replay.rglob("*")
+        out[GAUGES[0]] = sum(f.stat().st_size for f in replay.rglob("*")
                                        if f.is_file()) / 2**20
     if len(progress) >= 2 and progress[-1][0] > progress[-2][0]:
         (t0, s0), (t1, s1) = progress[-2:]
-        out["env steps/s"] = (s1 - s0) / (t1 - t0)
+        out[GAUGES[1]] = (s1 - s0) / (t1 - t0)
     with contextlib.suppress(OSError), (run_dir / "metrics.jsonl").open("rb") as f:
         f.seek(max(0, f.seek(0, os.SEEK_END) - 65536))
         for line in reversed(f.read().decode(errors="replace").splitlines()):
             if '"perf/update_ms"' in line:
                 with contextlib.suppress(ValueError):
-                    out["update (ms)"] = float(json.loads(line)["perf/update_ms"])
+                    out[GAUGES[2]] = float(json.loads(line)["perf/update_ms"])
                 break
     return out
 
@@ -152,6 +153,54 @@ def render(summary: dict[str, dict], restarts: dict[str, int], tolerance_pct: fl
                      f"{s['max_mib']:,.1f} | {s['final_mib']:,.1f} | {s['drift_pct']:+.1f} | "
                      f"{s['result']}{note} |")
     return "\n".join(lines)
+
+
+def figure(results: dict, path: Path) -> None:
+    """Every series against minutes: the services' RSS against each one's warm-up reference
+    (in percent), then each gauge with its warm-up reference; the ± tolerance band green, the
+    warm-up grey."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from tpdeb.services.plot import save
+
+    meta, series, summary = results["meta"], results["series"], results["summary"]
+    gauge_names = [n for n in GAUGES if n in series]
+    rss_names = [n for n in series if n not in GAUGES]
+    fig, axes = plt.subplots(2, 2, figsize=(10, 6.4), sharex=True)
+    tol = meta["tolerance_pct"]
+    ax = axes[0][0]  # every service's RSS against its own warm-up reference, in percent
+    reach = 2 * tol  # the y range: the band twice over, or what the soak after warm-up reached
+    for n, name in enumerate(rss_names):
+        ref = summary.get(name, {}).get("warmup_mib")
+        if ref:
+            pct = [(t / 60, 100 * (v / ref - 1)) for t, v in series[name]]
+            ax.plot(*zip(*pct, strict=True), color=f"C{n}", lw=1,
+                    label=f"{name} ({ref:,.0f} MiB)")
+            reach = max([reach] + [abs(p) for m, p in pct if m >= meta["warmup_minutes"]])
+    ax.axhspan(-tol, tol, color="C2", alpha=0.15)
+    ax.set_ylim(-1.2 * reach, 1.2 * reach)
+    panels = [(ax, f"RSS vs warm-up (%, ±{tol:g} % shaded)")]
+    for ax, name in zip([axes[0][1], axes[1][0], axes[1][1]], gauge_names, strict=False):
+        ax.plot([t / 60 for t, _ in series[name]], [v for _, v in series[name]], lw=1,
+                label=name)
+        ref = summary.get(name, {}).get("warmup_mib")
+        if ref is not None:
+            ax.axhspan(ref * (1 - tol / 100), ref * (1 + tol / 100), color="C2", alpha=0.15,
+                       label=f"warm-up ± {tol:g} %")
+        panels.append((ax, name))
+    for ax, ylabel in panels:
+        ax.axvspan(0, meta["warmup_minutes"], color="grey", alpha=0.15)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+    for ax in axes[1]:
+        ax.set_xlabel("minutes (warm-up shaded)")
+    fig.suptitle(f"soak: {meta['minutes']:g} min, {Path(meta['config']).name} "
+                 f"({results['result']})")
+    save(fig, path)
 
 
 def order(name: str) -> tuple:
@@ -198,9 +247,23 @@ def main() -> int:
     p.add_argument("--out", default=str(ROOT / "docs" / "data" / "soak.json"))
     p.add_argument("--keep-run-dir", action="store_true",
                    help="keep the temporary run dir (it is always kept when the soak fails)")
+    p.add_argument("--figure", type=Path,
+                   help="also draw the series into this PNG (needs the plot extra)")
+    p.add_argument("--redraw", type=Path, metavar="JSON",
+                   help="run nothing: draw --figure from this soak's result")
     p.add_argument("cluster_args", nargs="*",
                    help="more tpdeb-cluster flags after --, e.g. -- --env-id Hopper-v5")
     args = p.parse_args()
+    if args.redraw is not None:
+        if args.figure is None:
+            p.error("--redraw needs --figure (the PNG to write)")
+        try:
+            results = json.loads(args.redraw.read_text())
+            figure(results, args.figure)
+        except (OSError, ValueError, KeyError) as exc:
+            p.error(f"--redraw {args.redraw}: not a soak result this script wrote ({exc!r})")
+        say(f"figure in {args.figure}")
+        return 0
     if args.minutes - args.warmup_minutes < 2 * WINDOW_S / 60:
         p.error(f"--minutes {args.minutes:g} with --warmup-minutes {args.warmup_minutes:g} "
                 "leaves less than 2 minutes after warm-up (one for each reference median)")
@@ -309,6 +372,9 @@ def main() -> int:
     for problem in problems:
         say(f"problem: {problem}")
     say(f"series in {out}")
+    if args.figure is not None:
+        figure(results, args.figure)
+        say(f"figure in {args.figure}")
     if failed or problems:
         say(f"FAIL ({', '.join(failed) or 'see the problems above'}); run dir kept: {run_dir}")
         return 1
