@@ -83,7 +83,11 @@ SNAPSHOT_FORMAT = 2  # of what snapshot() saves (2: msgpack state); a restore re
 PENALTY_S, PENALTY_MAX_S = 0.1, 30.0  # a bad message's sender is ignored this long, doubling
 MAX_HANDLED_PER_PASS = 512  # inbox items one loop pass takes before it ingests, samples, acks
 DISK_RETRY_S = 5.0  # while the log cannot be written, how often it is tried again
-MAX_INCARNATIONS = 4  # per actor: a restarted actor's old fragments stop arriving quickly
+# Per actor id, the incarnations whose windows are kept: a dead one's is a few ints (its gaps
+# are at most its outbox), so a thousand restarts cost little and a late resend from any of
+# them is still recognised, and every acknowledged fragment stays accountable; past this the
+# oldest is forgotten.
+MAX_INCARNATIONS = 1024
 
 
 # The fields of a saved state and their types: checked before any is used (a snapshot is read

@@ -4,6 +4,7 @@ not-ready replies, refusals, back-pressure and resends."""
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -263,3 +264,16 @@ def test_a_flooding_sender_is_held_to_its_share_and_the_others_still_get_in(repl
     send(bus, make_traj(seed=2))  # the honest actor is not held back by it
     server.poll(0.0)
     assert len(server.replay) == 3
+
+
+def test_a_resend_from_an_actor_restarted_many_times_ago_is_still_recognised(replay):
+    server, bus = replay
+    first = make_traj(seed=0)
+    for incarnation in range(1, 11):  # the actor restarted nine times
+        send(bus, dataclasses.replace(first, incarnation=incarnation))
+        server.poll(0.0)
+    send(bus, dataclasses.replace(first, incarnation=1))  # the first one's resend, late
+    server.poll(0.0)
+    ledger = server.ledgers[3]
+    assert ledger.duplicates == 1  # stored once
+    assert ledger.ingested + len(ledger.pending) == 10 and 0 in ledger.windows[1]
