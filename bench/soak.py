@@ -17,9 +17,12 @@ learner's mean update time (`perf/update_ms`, the last row of metrics.jsonl).
 
 After `--warmup-minutes` (buffers filling, allocator pools growing) each service is judged:
 warm-up RSS = median of the first minute after warm-up, final RSS = median of the last minute,
-drift = final vs warm-up, PASS when |drift| ≤ `--tolerance-pct` (5 %). At the end the cluster
-gets SIGINT (its graceful stop: checkpoint, snapshot), the script waits for it and checks that
-no process of the run is left. The series goes to `--out` (JSON) and a markdown table is
+drift = final vs warm-up, PASS when |drift| ≤ `--tolerance-pct` (5 %). The gauges are judged
+the same way over five minutes (at most a quarter of the soak after warm-up): they vary by more
+than that from one minute to the next, and the disk is a sawtooth cut at every snapshot.
+`--rejudge RESULT.json` judges a saved soak's series again, measuring nothing. At the end the
+cluster gets SIGINT (its graceful stop: checkpoint, snapshot), the script waits for it and
+checks that no process of the run is left. The series goes to `--out` (JSON) and a markdown table is
 printed. Exit status 1 on a FAIL, a restart, an early exit or a process left behind.
 """
 
@@ -43,7 +46,11 @@ from pathlib import Path
 from procfs import SERVICES, cmdline, descendants, proc_table, rss_kib, service_name
 
 ROOT = Path(__file__).resolve().parents[1]
-WINDOW_S = 60.0  # the warm-up and final references are medians over one minute each
+WINDOW_S = 60.0  # a service's warm-up and final RSS are medians over one minute each
+# A gauge's references are medians over up to five minutes: env steps/s and update times vary
+# by several percent from one minute to the next, and the replay's disk is a sawtooth (its log
+# grows and is cut at each snapshot), whose one-minute median depends on where the minute falls.
+GAUGE_WINDOW_S = 300.0
 GAUGES = ("replay disk (MiB)", "env steps/s", "update (ms)")  # sampled beside the RSS
 PROGRESS = re.compile(r"^\[learner\] tpdeb-learner: \[\s*([\d,]+)/[\d,]+\]")
 
@@ -127,18 +134,40 @@ def gauges(run_dir: Path, progress: list[tuple[float, int]]) -> dict[str, float]
 # ----------------------------------------------------------------------------- verdict
 
 def judge(series: list[tuple[float, float]], warmup_s: float, end_s: float,
-          tolerance_pct: float) -> dict:
+          tolerance_pct: float, window_s: float = WINDOW_S) -> dict:
     after = [(t, v) for t, v in series if t >= warmup_s]
-    first = [v for t, v in after if t < warmup_s + WINDOW_S]
-    last = [v for t, v in after if t >= end_s - WINDOW_S]
+    first = [v for t, v in after if t < warmup_s + window_s]
+    last = [v for t, v in after if t >= end_s - window_s]
     if not first or not last:
-        return {"result": "FAIL", "why": "no samples after warm-up / in the last minute",
+        return {"result": "FAIL", "why": "no samples after warm-up / in the last window",
                 "samples": len(after)}
     warm, final = statistics.median(first), statistics.median(last)
     drift = 100 * (final - warm) / warm
     return {"warmup_mib": warm, "min_mib": min(v for _, v in after),
             "max_mib": max(v for _, v in after), "final_mib": final, "drift_pct": drift,
-            "samples": len(after), "result": "PASS" if abs(drift) <= tolerance_pct else "FAIL"}
+            "samples": len(after), "window_s": window_s,
+            "result": "PASS" if abs(drift) <= tolerance_pct else "FAIL"}
+
+
+def window_of(name: str, warmup_s: float, end_s: float) -> float:
+    """The reference window of a series: a minute for RSS; for a gauge up to five minutes, at
+    most a quarter of the soak after warm-up (never less than a minute)."""
+    if name not in GAUGES:
+        return WINDOW_S
+    return max(WINDOW_S, min(GAUGE_WINDOW_S, (end_s - warmup_s) / 4))
+
+
+def verdict(results: dict) -> None:
+    """Judge every series of `results` (its meta, series, problems and restarts) and set its
+    summary, result and table."""
+    meta, warmup_s = results["meta"], 60 * results["meta"]["warmup_minutes"]
+    end_s, tolerance = meta["soak_s"], meta["tolerance_pct"]
+    summary = {n: judge(v, warmup_s, end_s, tolerance, window_of(n, warmup_s, end_s))
+               for n, v in results["series"].items()}
+    failed = [n for n, s in summary.items() if s["result"] != "PASS"]
+    results.update(summary=summary, failed=failed,
+                   result="FAIL" if failed or results["problems"] else "PASS",
+                   table_markdown=render(summary, results["restarts"], tolerance))
 
 
 def render(summary: dict[str, dict], restarts: dict[str, int], tolerance_pct: float) -> str:
@@ -203,6 +232,24 @@ def figure(results: dict, path: Path) -> None:
     save(fig, path)
 
 
+def rejudge(path: Path, png: Path | None, parser) -> int:
+    """--rejudge: the verdict of a saved soak again, from its series (nothing is measured)."""
+    try:
+        results = json.loads(path.read_text())
+        results["meta"].setdefault("gauge_window_s", GAUGE_WINDOW_S)
+        verdict(results)
+        if png is not None:
+            figure(results, png)
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        parser.error(f"--rejudge {path}: not a soak result this script wrote ({exc!r})")
+    path.write_text(json.dumps(results, indent=1))
+    print(results["table_markdown"])
+    failed = f" ({', '.join(results['failed'])})" if results["failed"] else ""
+    say(f"{results['result']}{failed}; verdict written to {path}"
+        + (f", figure in {png}" if png else ""))
+    return 0 if results["result"] == "PASS" else 1
+
+
 def order(name: str) -> tuple:
     role = name.split("-")[0].split("/")[0]
     return (SERVICES.index(role) if role in SERVICES else len(SERVICES), name)
@@ -249,21 +296,14 @@ def main() -> int:
                    help="keep the temporary run dir (it is always kept when the soak fails)")
     p.add_argument("--figure", type=Path,
                    help="also draw the series into this PNG (needs the plot extra)")
-    p.add_argument("--redraw", type=Path, metavar="JSON",
-                   help="run nothing: draw --figure from this soak's result")
+    p.add_argument("--rejudge", type=Path, metavar="JSON",
+                   help="run nothing: judge this soak's series again by today's rule (the "
+                        "file is updated) and draw --figure from it")
     p.add_argument("cluster_args", nargs="*",
                    help="more tpdeb-cluster flags after --, e.g. -- --env-id Hopper-v5")
     args = p.parse_args()
-    if args.redraw is not None:
-        if args.figure is None:
-            p.error("--redraw needs --figure (the PNG to write)")
-        try:
-            results = json.loads(args.redraw.read_text())
-            figure(results, args.figure)
-        except (OSError, ValueError, KeyError) as exc:
-            p.error(f"--redraw {args.redraw}: not a soak result this script wrote ({exc!r})")
-        say(f"figure in {args.figure}")
-        return 0
+    if args.rejudge is not None:
+        return rejudge(args.rejudge, args.figure, p)
     if args.minutes - args.warmup_minutes < 2 * WINDOW_S / 60:
         p.error(f"--minutes {args.minutes:g} with --warmup-minutes {args.warmup_minutes:g} "
                 "leaves less than 2 minutes after warm-up (one for each reference median)")
@@ -344,20 +384,19 @@ def main() -> int:
         problems.append(f"services restarted during the soak: {restarts}")
 
     names = sorted(sampler.series, key=order)
-    summary = {n: judge(sampler.series[n], warmup_s, end_s, args.tolerance_pct) for n in names}
-    failed = [n for n, s in summary.items() if s["result"] != "PASS"]
-    table = render(summary, restarts, args.tolerance_pct)
     results = {
         "meta": {"started": started, "minutes": args.minutes,
                  "warmup_minutes": args.warmup_minutes, "interval_s": args.interval_s,
                  "tolerance_pct": args.tolerance_pct, "window_s": WINDOW_S,
+                 "gauge_window_s": GAUGE_WINDOW_S,
                  "cpu_count": os.cpu_count(), "loadavg_end": os.getloadavg(),
                  "command": argv, "config": args.config, "soak_s": end_s,
                  "stop_s": stopped_s, "exit_code": exit_code},
-        "summary": summary, "restarts": restarts, "pids": sampler.pids,
+        "restarts": restarts, "pids": sampler.pids,
         "series": {n: sampler.series[n] for n in names}, "learner_steps": progress,
-        "problems": problems, "result": "FAIL" if failed or problems else "PASS",
-        "table_markdown": table}
+        "problems": problems}
+    verdict(results)
+    failed, table = results["failed"], results["table_markdown"]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))

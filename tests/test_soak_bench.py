@@ -27,3 +27,17 @@ def test_growth_or_shrinkage_past_the_tolerance_fails():
 def test_a_soak_too_short_to_judge_fails_with_the_reason():
     verdict = soak.judge(series([100.0, 100.0]), 120.0, 120.0, 5.0)
     assert verdict["result"] == "FAIL" and "no samples" in verdict["why"]
+
+
+def test_a_gauge_is_judged_over_minutes_enough_to_hold_its_sawtooth():
+    # the replay's disk: its log grows for 70 s and is cut at a snapshot; no trend at all
+    tooth = [(float(t), 80.0 + 80.0 * (t % 70) / 70) for t in range(0, 3600, 5)]
+    minute = soak.judge(tooth, 120.0, 3600.0, 5.0)
+    assert minute["result"] == "FAIL"  # one minute's median depends on where the minute falls
+    results = {"meta": {"warmup_minutes": 2.0, "soak_s": 3600.0, "tolerance_pct": 5.0},
+               "series": {"replay disk (MiB)": tooth, "replay": series([90.0] * 60)},
+               "problems": [], "restarts": {}}
+    soak.verdict(results)
+    assert results["summary"]["replay disk (MiB)"]["window_s"] == 300.0
+    assert results["summary"]["replay"]["window_s"] == 60.0
+    assert results["result"] == "PASS", results["table_markdown"]
