@@ -11,15 +11,15 @@ real fragments of the task (collected once, re-stamped) with an actor's window (
 its resend of what stays unacknowledged; the actors take turns, so an unfairness that shows is
 the replay server's or the network's, not this process's. And a flooder process of its own (as
 a misbehaving actor's host would be), publishing garbage on its own actor key as fast as it
-can. This process plays the learner: sample requests one after
-another, each reply's latency timed. Every second the replay's RSS is read.
+can. This process plays the learner: sample requests one after another, each reply's latency
+timed. Every second the replay's RSS and every process's CPU time are read.
 
 Prints and writes (bench/out/crowd/results.json; `--save` also to docs/data/crowd/): fragments/s
 acknowledged in all and per actor (min, median, max: whether anyone is starved), the fragments
-resent (acks lost or late) and the duplicates the replay saw, the
-flooder's messages and how many the replay dropped on arrival, the learner's reply latency
-(median, p99) and ready fraction, and the replay's RSS at start and at most (bounded by
-back-pressure, not growing with the flood). These are timings: nothing else may run meanwhile.
+resent (acks lost or late) and the duplicates the replay saw, the flooder's messages and how
+many the replay dropped on arrival, the learner's reply latency (median, p99) and ready
+fraction, the replay's RSS at start and at most (bounded by back-pressure, not growing with the
+flood) and each process's CPU in cores. These are timings: nothing else may run meanwhile.
 """
 
 from __future__ import annotations
@@ -164,6 +164,8 @@ def main() -> None:
     parser.add_argument("--flooder", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help="the router's (default: a free port on loopback)")
     args = parser.parse_args()
+    if args.actors < 1 or args.window < 1 or args.seconds <= 0 or args.resend_after_s <= 0:
+        parser.error("--actors and --window must be ≥ 1, --seconds and --resend-after-s > 0")
     if args.crowd:
         return crowd(args)
     if args.flooder:
