@@ -157,6 +157,11 @@ def window_of(name: str, warmup_s: float, end_s: float) -> float:
     return max(WINDOW_S, min(GAUGE_WINDOW_S, (end_s - warmup_s) / 4))
 
 
+def failing(results: dict) -> list[str]:
+    """The series of a judged soak that did not pass."""
+    return [n for n, s in results["summary"].items() if s["result"] != "PASS"]
+
+
 def verdict(results: dict) -> None:
     """Judge every series of `results` (its meta, series, problems and restarts) and set its
     summary, result and table."""
@@ -164,9 +169,8 @@ def verdict(results: dict) -> None:
     end_s, tolerance = meta["soak_s"], meta["tolerance_pct"]
     summary = {n: judge(v, warmup_s, end_s, tolerance, window_of(n, warmup_s, end_s))
                for n, v in results["series"].items()}
-    failed = [n for n, s in summary.items() if s["result"] != "PASS"]
-    results.update(summary=summary, failed=failed,
-                   result="FAIL" if failed or results["problems"] else "PASS",
+    results["summary"] = summary
+    results.update(result="FAIL" if failing(results) or results["problems"] else "PASS",
                    table_markdown=render(summary, results["restarts"], tolerance))
 
 
@@ -244,7 +248,7 @@ def rejudge(path: Path, png: Path | None, parser) -> int:
         parser.error(f"--rejudge {path}: not a soak result this script wrote ({exc!r})")
     path.write_text(json.dumps(results, indent=1))
     print(results["table_markdown"])
-    failed = f" ({', '.join(results['failed'])})" if results["failed"] else ""
+    failed = f" ({', '.join(failing(results))})" if failing(results) else ""
     say(f"{results['result']}{failed}; verdict written to {path}"
         + (f", figure in {png}" if png else ""))
     return 0 if results["result"] == "PASS" else 1
@@ -396,7 +400,7 @@ def main() -> int:
         "series": {n: sampler.series[n] for n in names}, "learner_steps": progress,
         "problems": problems}
     verdict(results)
-    failed, table = results["failed"], results["table_markdown"]
+    failed, table = failing(results), results["table_markdown"]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))
