@@ -178,9 +178,10 @@ async def pump(reader, writer, direction: Direction) -> None:
     tasks = [asyncio.create_task(read_side()), asyncio.create_task(write_side())]
     try:
         await asyncio.gather(*tasks)
-    finally:
+    finally:  # one side failed or the connection is being closed: end the other, and wait
         for task in tasks:
             task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def receive_buffer(direction: Direction) -> int | None:
@@ -203,6 +204,21 @@ class Link:
         self.up = Direction("up", config.up_bytes_per_s, config)
         self.down = Direction("down", config.down_bytes_per_s, config)
         self.connections = 0
+        # Each connection's task, held here: the event loop holds tasks weakly, and a
+        # connection whose sockets all wait could otherwise be collected mid-flight.
+        self.tasks: set[asyncio.Task] = set()
+
+    def accept(self, actor_reader, actor_writer) -> None:
+        """The server's callback for a new actor connection: bridge it in a task of our own."""
+        task = asyncio.get_running_loop().create_task(self.handle(actor_reader, actor_writer))
+        self.tasks.add(task)
+        task.add_done_callback(self.tasks.discard)
+
+    async def close(self) -> None:
+        """End every connection (both sockets closed) and wait until each has."""
+        for task in list(self.tasks):
+            task.cancel()
+        await asyncio.gather(*self.tasks, return_exceptions=True)
 
     async def handle(self, actor_reader, actor_writer) -> None:
         host, port = host_port(self.config.connect)
@@ -251,7 +267,7 @@ async def serve(config: LinkConfig, stop: asyncio.Event, report) -> None:
         sock = bound_socket(info[0], receive_buffer(link.up))
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(info[4])
-        server = await asyncio.start_server(link.handle, sock=sock)
+        server = await asyncio.start_server(link.accept, sock=sock)
     except OSError as exc:
         raise ConfigError(f"cannot listen on {config.listen}: {exc.strerror}; pick a free port "
                           "(--listen)") from None
@@ -269,6 +285,8 @@ async def serve(config: LinkConfig, stop: asyncio.Event, report) -> None:
             previous = link.stats(previous, now - last)
             last = now
             report({k: v for k, v in previous.items() if not k.startswith("_")})
+        server.close()  # no new connections, then end the open ones
+        await link.close()
 
 
 def stats_reporter(config: LinkConfig):
