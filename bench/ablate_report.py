@@ -178,13 +178,14 @@ def versus(env_id: str, ours: list[dict], theirs: list[dict], what: str) -> str:
 
 
 def cost(runs: list[dict]) -> str:
-    """The learner's median time per update and the mean minutes per run, with the commits the
-    runs ran on: a learner made faster between two commits shows here as much as a setting."""
+    """The learner's median time per update and the median minutes per run (one run slowed by
+    a busy machine moves neither), with the commits the runs ran on: a learner made faster
+    between two commits shows here as much as a setting."""
     update = [r["diagnostics"]["perf/update_ms"] for r in runs
               if "perf/update_ms" in r.get("diagnostics", {})]
     codes = sorted({r.get("code", "?") for r in runs})
     per_update = f"{statistics.median(update):.0f} ms per update, " if update else ""
-    return (f"{per_update}{statistics.mean(r['wall_s'] for r in runs) / 60:.1f} min per run "
+    return (f"{per_update}{statistics.median(r['wall_s'] for r in runs) / 60:.1f} min per run "
             f"(commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
 
 

@@ -153,7 +153,10 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
         if level is not None:
             r.path.parent.mkdir(parents=True, exist_ok=True)
             step = r.cell.label == "priority=step"
-            r.path.write_text(json.dumps(made_up(level, r.seed, update_ms=90.0 if step else 15.0)))
+            result = made_up(level, r.seed, update_ms=90.0 if step else 15.0)
+            if step and r.seed == max(ablate.SEEDS):  # one run slowed by a busy machine
+                result["wall_s"] = 2500.0
+            r.path.write_text(json.dumps(result))
     ablate_report.report(full_plan)
     text = (tmp_path / "ABLATIONS.md").read_text()
     for name in ablate.studies():
