@@ -7,9 +7,7 @@ import socket
 import sys
 import time
 
-import pytest
-
-from tests.procs import Procs, free_port
+from tests.procs import free_port
 
 # A stand-in for the router: echoes every byte back (both directions of the link carry data).
 ECHO = """
@@ -28,14 +26,6 @@ asyncio.run(main())
 """
 
 
-@pytest.fixture
-def procs(tmp_path):
-    p = Procs(tmp_path)
-    yield p
-    p.stop_all()
-    assert p.leftovers() == []
-
-
 def through(port: int) -> socket.socket:
     """A connection through the link that has carried data both ways, left open."""
     conn = socket.create_connection(("127.0.0.1", port), timeout=10)
@@ -48,7 +38,7 @@ def through(port: int) -> socket.socket:
     return conn
 
 
-def test_sigterm_with_open_connections_stops_cleanly(procs, tmp_path):
+def test_sigterm_with_open_connections_stops_cleanly(procs):
     router_port, link_port = free_port(), free_port()
     router = procs.spawn_command([sys.executable, "-c", ECHO, str(router_port)], "echo", {})
     procs.wait_for_line(router, "listening")
