@@ -198,6 +198,21 @@ def bound_socket(family: int, rcvbuf: int | None) -> socket.socket:
     return sock
 
 
+async def connect(endpoint: str, rcvbuf: int | None):
+    """A stream pair to `endpoint` whose socket has `rcvbuf` set before connecting; on failure
+    or cancellation the socket is closed here, not left to the garbage collector."""
+    host, port = host_port(endpoint)
+    info = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
+    sock = bound_socket(info[0], rcvbuf)
+    try:
+        sock.setblocking(False)
+        await asyncio.get_running_loop().sock_connect(sock, info[4])
+        return await asyncio.open_connection(sock=sock)
+    except BaseException:
+        sock.close()
+        raise
+
+
 class Link:
     def __init__(self, config: LinkConfig):
         self.config = config
@@ -221,18 +236,17 @@ class Link:
         await asyncio.gather(*self.tasks, return_exceptions=True)
 
     async def handle(self, actor_reader, actor_writer) -> None:
-        host, port = host_port(self.config.connect)
         try:
-            info = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM)[0]
-            sock = bound_socket(info[0], receive_buffer(self.down))
-            sock.setblocking(False)
-            await asyncio.get_running_loop().sock_connect(sock, info[4])
-            router_reader, router_writer = await asyncio.open_connection(sock=sock)
+            router_reader, router_writer = await connect(self.config.connect,
+                                                         receive_buffer(self.down))
         except OSError as exc:
             log.info(f"cannot reach the router at {self.config.connect} ({exc.strerror}): is "
                       "tpdeb-replay running there? (normal while a run is shutting down)")
             actor_writer.close()
             return
+        except asyncio.CancelledError:  # the link stops while this one is still connecting
+            actor_writer.close()
+            raise
         self.connections += 1
         try:
             await asyncio.gather(pump(actor_reader, router_writer, self.up),

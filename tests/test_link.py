@@ -1,5 +1,6 @@
 """`tpdeb-link` as a process: it bridges both ways, and a SIGTERM with connections still open
-stops it cleanly — every connection closed, exit 0, no traceback or abandoned task in its log."""
+stops it cleanly — every connection closed, exit 0, no traceback or abandoned task in its log;
+and in-process, a connection still reaching the router when the link stops closes its sockets."""
 
 from __future__ import annotations
 
@@ -60,3 +61,41 @@ def test_sigterm_with_open_connections_stops_cleanly(procs):
             pass
         assert data == b""
         conn.close()
+
+
+def test_a_connection_cancelled_while_reaching_the_router_closes_both_its_sockets(monkeypatch):
+    """The link stopping while a connection still waits on the router: the actor's side and the
+    half-open socket to the router are closed then, not left to the garbage collector."""
+    import asyncio
+
+    from tpdeb.services import link
+
+    made: list[socket.socket] = []
+    real = link.bound_socket
+
+    def kept(family, rcvbuf):
+        made.append(real(family, rcvbuf))
+        return made[-1]
+
+    class Actor:  # the actor's side of the connection: only its close matters here
+        closed = False
+
+        def close(self):
+            self.closed = True
+
+    async def hang(sock, address):  # a router that never answers the SYN
+        await asyncio.Event().wait()
+
+    async def scenario() -> Actor:
+        monkeypatch.setattr(link, "bound_socket", kept)
+        monkeypatch.setattr(asyncio.get_running_loop(), "sock_connect", hang)
+        bridge, actor = link.Link(link.LinkConfig(connect=f"tcp/127.0.0.1:{free_port()}")), Actor()
+        bridge.accept(None, actor)
+        await asyncio.sleep(0.05)
+        assert made and made[0].fileno() != -1 and not actor.closed  # still connecting
+        await bridge.close()
+        assert not bridge.tasks
+        return actor
+
+    actor = asyncio.run(scenario())
+    assert actor.closed and made[0].fileno() == -1
