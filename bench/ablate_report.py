@@ -433,6 +433,18 @@ def rows_of(study: Study, presets: dict[str, dict]) -> dict[str, list[tuple[str,
                      for c in study.cells] for env_id in study.envs}
 
 
+def own_buffers(study: Study, env_id: str, preset: dict) -> str:
+    """A verdict line: where the task's preset sits on the grid, with its runs on the study's
+    seeds (the comparison grid's)."""
+    runs = cell_runs(study, env_id, Cell("preset"), preset)
+    if not runs:
+        return ""
+    n_u, n_p = preset["uniform_capacity_steps"], preset["prioritized_capacity"]
+    return (f"\n- {env_id}: the preset's own buffers, N_u {n_u:,} steps and N_p {n_p} fragments "
+            f"({n_p * preset['fragment_len']:,} steps), on the same seed: "
+            f"{statistics.mean(training(runs)):,.0f}")
+
+
 def section(study: Study, presets: dict[str, dict]) -> str:
     by_env = rows_of(study, presets)
     out = [f"## {study.name}: {study.figure}", "",
@@ -470,6 +482,8 @@ def section(study: Study, presets: dict[str, dict]) -> str:
                 out.append(f"![buffers {env_id}](img/ablation/{image.name})")
         out.append("")
     lines = verdict(study, by_env)
+    if study.name == "buffers" and lines:
+        lines += "".join(own_buffers(study, env_id, presets[env_id]) for env_id in by_env)
     out += ["What the runs say:", "", lines or "- too few runs for a verdict yet."]
     judged = holds(study, by_env)
     if judged:

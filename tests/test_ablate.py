@@ -176,6 +176,10 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     # the workers study's own 2-actor run (2,800), not the comparison grid's preset run (3,000)
     assert "2 actors 2,812 in 8.3 min" in text
     assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text
+    ant = ablate.preset_values("Ant-v5")
+    n_u, n_p = ant["uniform_capacity_steps"], ant["prioritized_capacity"]
+    assert f"- Ant-v5: the preset's own buffers, N_u {n_u:,} steps and N_p {n_p} fragments " \
+           f"({n_p * ant['fragment_len']:,} steps), on the same seed: 3,011" in text
     assert "tau" in text and "too few runs for a verdict yet" in text  # τ: only the preset's
     zeta = text.split("## zeta:")[1].split("## tau:")[0]
     assert "**The paper's statement holds here** (provisional: 9 runs still missing)" in zeta
