@@ -222,14 +222,34 @@ def cost(runs: list[dict]) -> str:
             f"(commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
 
 
-def marginals(means: dict[str, float], part: int) -> list[tuple[str, float]]:
+def marginals(means: dict[str, float], part: int, scale: float | None = None
+              ) -> list[tuple[str, float]]:
     """Per value of one buffer axis (0: N_u, 1: N_p), in the study's order, the mean over the
-    other axis of the training return divided by the best cell's."""
-    top = max(means.values())
+    other axis of the cells' values divided by `scale` (default: the best cell's)."""
+    top = scale or max(means.values())
     by_value: dict[str, list[float]] = {}
     for label, mean in means.items():
         by_value.setdefault(label.split(",")[part].split("=")[1], []).append(mean / top)
     return [(value, statistics.mean(v)) for value, v in by_value.items()]
+
+
+STALENESS = (("replay/sample_age_updates", "a sampled fragment's age in learner updates", ",.0f"),
+             ("losses/kl_behaviour", "KL(μ‖π_θ) to the policies that made the data", ".2f"))
+
+
+def staleness(env_id: str, rows: list[tuple[str, list[dict]]]) -> list[str]:
+    """How old the buffers' data is when sampled, per axis, from the runs' end-of-run
+    diagnostics: the paper's reading of a too-large buffer ("outdated experiences")."""
+    lines = []
+    for key, what, fmt in STALENESS:
+        cells = {label: statistics.mean(r["diagnostics"][key] for r in runs)
+                 for label, runs in rows if all(key in r.get("diagnostics", {}) for r in runs)}
+        if len(cells) < 2:
+            continue
+        lines += [f"{env_id}: {what} at the end, by {axis}: " + "; ".join(
+            f"{value} {format(m, fmt)}" for value, m in marginals(cells, part, scale=1.0))
+            for part, axis in ((0, "N_u"), (1, "N_p"))]
+    return lines
 
 
 def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str:
@@ -258,6 +278,7 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> st
                 lines.append(f"{env_id}: mean normalised return by {axis}: " + "; ".join(
                     f"{value} {m:.2f}" for value, m in marginals(means, part)))
             lines.append(f"{env_id}: the best cell is {best} ({means[best]:,.0f})")
+            lines += staleness(env_id, rows)
         elif study.name == "workers":
             lines.append(f"{env_id}: at 1M steps " + "; ".join(
                 f"{label.split('=')[1]} actors {means[label]:,.0f} in "

@@ -270,3 +270,26 @@ def test_kl_stability_counts_a_fall_only_beyond_the_seed_spread():
                                          "kl=off": [0.08, 0.09, 0.1]}))
     assert re.search(r"- no — Ant-v5: .* against \d% ± \d% \(n=3\), less, but kl=off falls "
                      r"less than 20%$", text, re.M)
+
+
+def test_the_buffers_verdict_says_how_stale_each_axis_samples():
+    import ablate_report
+
+    def run(age: float, kl: float) -> dict:
+        return {"diagnostics": {"replay/sample_age_updates": age, "losses/kl_behaviour": kl}}
+
+    rows = [("N_u=5k,N_p=1k", [run(100, 0.1)]), ("N_u=5k,N_p=80k", [run(300, 0.3)]),
+            ("N_u=1M,N_p=1k", [run(5000, 1.0)]), ("N_u=1M,N_p=80k", [run(7000, 2.0)]),
+            ("N_u=50k,N_p=1k", [])]  # a cell not run yet is left out
+    lines = ablate_report.staleness("Ant-v5", [(k, v) for k, v in rows if v])
+    assert lines == [
+        "Ant-v5: a sampled fragment's age in learner updates at the end, by N_u: 5k 200; "
+        "1M 6,000",
+        "Ant-v5: a sampled fragment's age in learner updates at the end, by N_p: 1k 2,550; "
+        "80k 3,650",
+        "Ant-v5: KL(μ‖π_θ) to the policies that made the data at the end, by N_u: 5k 0.20; "
+        "1M 1.50",
+        "Ant-v5: KL(μ‖π_θ) to the policies that made the data at the end, by N_p: 1k 0.55; "
+        "80k 1.15"]
+    assert ablate_report.staleness("Ant-v5", [("N_u=5k,N_p=1k", [{"diagnostics": {}}]),
+                                              ("N_u=1M,N_p=1k", [{}])]) == []
