@@ -252,7 +252,8 @@ def staleness(env_id: str, rows: list[tuple[str, list[dict]]]) -> list[str]:
     return lines
 
 
-def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str:
+def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
+            presets: dict[str, dict]) -> str:
     """What the runs say of the paper's statement, with the numbers; '' with too few runs."""
     lines = []
     for env_id, rows in by_env.items():
@@ -278,7 +279,7 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> st
                 lines.append(f"{env_id}: mean normalised return by {axis}: " + "; ".join(
                     f"{value} {m:.2f}" for value, m in marginals(means, part)))
             lines.append(f"{env_id}: the best cell is {best} ({means[best]:,.0f})")
-            lines += staleness(env_id, rows)
+            lines += staleness(env_id, rows) + own_buffers(study, env_id, presets[env_id])
         elif study.name == "workers":
             lines.append(f"{env_id}: at 1M steps " + "; ".join(
                 f"{label.split('=')[1]} actors {means[label]:,.0f} in "
@@ -380,13 +381,6 @@ def pair_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool
     return [spread_test(f"{env_id}: {a} above {b}", a, training(ours), b, training(theirs))]
 
 
-def percent(values: list[float]) -> str:
-    """Fractions as `cell` writes returns: mean ± std over seeds in percent."""
-    if len(values) == 1:
-        return f"{values[0]:.0%} (n=1)"
-    return f"{statistics.mean(values):.0%} ± {statistics.stdev(values):.0%} (n={len(values)})"
-
-
 def kl_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
     """Stability: the return, and how far each seed's smoothed curve falls from its peak by the
     end. The KL term stabilises where the other falls further beyond the seed spread and its
@@ -395,7 +389,7 @@ def kl_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool |
     mine, other = ([peak_fall([r]) for r in rs] for rs in (ours, theirs))
     result = compare(other, mine)  # +1: the other falls further, beyond the spread
     text = (f"{env_id}: {a} falls less from its peak than {b}, which collapses (≥ "
-            f"{COLLAPSE:.0%}): {percent(mine)} against {percent(other)}, "
+            f"{COLLAPSE:.0%}): {cell(mine, '.0%')} against {cell(other, '.0%')}, "
             + {1: "less", 0: "within the seed spread", -1: "more", None: "one seed"}[result])
     collapsed = statistics.mean(other) >= COLLAPSE
     if result == 1 and not collapsed:
@@ -442,8 +436,8 @@ def glance(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str
     return f"| {study.name} | {study.figure} | {CLAIM[study.name]} | {here} |"
 
 
-def glance_table(all_studies: dict[str, Study], presets: dict[str, dict]) -> str:
-    rows = [glance(s, rows_of(s, presets)) for s in all_studies.values()]
+def glance_table(all_studies: dict[str, Study], by_study: dict[str, dict]) -> str:
+    rows = [glance(s, by_study[s.name]) for s in all_studies.values()]
     return "\n".join(["| study | paper | its statement | here, at 1M env steps |",
                       "|---|---|---|---|", *rows])
 
@@ -454,20 +448,20 @@ def rows_of(study: Study, presets: dict[str, dict]) -> dict[str, list[tuple[str,
                      for c in study.cells] for env_id in study.envs}
 
 
-def own_buffers(study: Study, env_id: str, preset: dict) -> str:
+def own_buffers(study: Study, env_id: str, preset: dict) -> list[str]:
     """A verdict line: where the task's preset sits on the grid, with its runs on the study's
-    seeds (the comparison grid's)."""
+    seeds (the comparison grid's); none while those runs are missing."""
     runs = cell_runs(study, env_id, Cell("preset"), preset)
     if not runs:
-        return ""
+        return []
     n_u, n_p = preset["uniform_capacity_steps"], preset["prioritized_capacity"]
-    return (f"\n- {env_id}: the preset's own buffers, N_u {n_u:,} steps and N_p {n_p} fragments "
+    return [f"{env_id}: the preset's own buffers, N_u {n_u:,} steps and N_p {n_p} fragments "
             f"({n_p * preset['fragment_len']:,} steps), on the same seed: "
-            f"{statistics.mean(training(runs)):,.0f}")
+            f"{statistics.mean(training(runs)):,.0f}"]
 
 
-def section(study: Study, presets: dict[str, dict]) -> str:
-    by_env = rows_of(study, presets)
+def section(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
+            presets: dict[str, dict]) -> str:
     out = [f"## {study.name}: {study.figure}", "",
            textwrap.fill(f"The paper: {PAPER[study.name]}", 98), "",
            f"`python bench/ablate.py --studies {study.name}` "
@@ -502,9 +496,7 @@ def section(study: Study, presets: dict[str, dict]) -> str:
                 heatmap(grid, image)
                 out.append(f"![buffers {env_id}](img/ablation/{image.name})")
         out.append("")
-    lines = verdict(study, by_env)
-    if study.name == "buffers" and lines:
-        lines += "".join(own_buffers(study, env_id, presets[env_id]) for env_id in by_env)
+    lines = verdict(study, by_env, presets)
     out += ["What the runs say:", "", lines or "- too few runs for a verdict yet."]
     judged = holds(study, by_env)
     if judged:
@@ -542,8 +534,9 @@ def report(runs) -> None:
     parts = [HEADER, f"Runs present: {len(made)} of {len(runs)}"
              + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)}" if codes else "")
              + "".join(f"; {n} on {host}" for host, n in hosts.most_common()) + "."]
-    table = glance_table(all_studies, presets)
-    parts += [table] + [section(study, presets) for study in all_studies.values()]
+    by_study = {s.name: rows_of(s, presets) for s in all_studies.values()}
+    table = glance_table(all_studies, by_study)
+    parts += [table] + [section(s, by_study[s.name], presets) for s in all_studies.values()]
     DOC.write_text("\n\n".join(parts) + "\n")
     print(f"wrote {DOC}")
     if replace_between(RESULTS, *SUMMARY, f"{table}\n\nEach row's numbers: [ABLATIONS]"

@@ -41,13 +41,15 @@ def seeds(n: int) -> str:
     return f"{n} seed" + "s" * (n != 1)
 
 
-def cell(values: list[float]) -> str:
-    """Mean ± std over seeds; a single run is its value alone (a spread of one is not zero)."""
+def cell(values: list[float], fmt: str = ",.0f") -> str:
+    """Mean ± std over seeds (each as `fmt`: returns by default, ".0%" for fractions); a single
+    run is its value alone (a spread of one is not zero)."""
     if not values:
         return "—"
     if len(values) == 1:
-        return f"{values[0]:,.0f} (n=1)"
-    return f"{statistics.mean(values):,.0f} ± {statistics.stdev(values):,.0f} (n={len(values)})"
+        return f"{values[0]:{fmt}} (n=1)"
+    return (f"{statistics.mean(values):{fmt}} ± {statistics.stdev(values):{fmt}} "
+            f"(n={len(values)})")
 
 
 def mean_curve(runs: list[dict], points: int = 200):
