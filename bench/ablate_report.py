@@ -15,9 +15,14 @@ import numpy as np
 from ablate import Cell, Study, preset_values, studies, tag_of  # noqa: I001  (bench/ is on sys.path)
 from paper import result_path
 from paper_report import (
+    NOT_JUDGED,
     VERDICT,
+    against_bar,
     cell,
     compare,
+    difference,
+    gap_cell,
+    grows,
     judgement,
     mean_curve,
     outcome,
@@ -67,8 +72,9 @@ CLAIM = {
 NOTES = {
     "buffers": "N_u is the uniform buffer's capacity in env steps; the paper's prioritised "
                "capacities, in steps, become capacities in whole fragments of the preset's "
-               "length (64 steps). One seed per cell: a cell's value carries that seed's noise, "
-               "so the verdict reads directions only.",
+               "length (64 steps). One seed per cell: a cell's value carries that seed's noise "
+               "and shows no spread, so no part of the statement is judged; the lines below "
+               "give directions only.",
     "priority": "Step priority is PER over single transitions (the PPO+PER baseline's sampler) "
                 "inside TPDEB: B_p's share of a batch is as many single-step draws as the "
                 "trajectory sampler's fragments hold steps, each weighted by its own importance "
@@ -211,15 +217,19 @@ def versus(env_id: str, ours: list[dict], theirs: list[dict], what: str) -> str:
 
 
 def cost(runs: list[dict]) -> str:
-    """The learner's median time per update and the median minutes per run (one run slowed by
-    a busy machine moves neither), with the commits the runs ran on: a learner made faster
-    between two commits shows here as much as a setting."""
+    """The learner's fastest time per update and minutes per run over the seeds, with the
+    range: a run that shared the machine with another is slower, never faster, so the fastest
+    is the nearest to the machine alone (and the range shows how far the others were from it);
+    with the commits the runs ran on: a learner made faster between two commits shows here as
+    much as a setting."""
     update = [r["diagnostics"]["perf/update_ms"] for r in runs
               if "perf/update_ms" in r.get("diagnostics", {})]
+    minutes = sorted(r["wall_s"] / 60 for r in runs)
     codes = sorted({r.get("code", "?") for r in runs})
-    per_update = f"{statistics.median(update):.0f} ms per update, " if update else ""
-    return (f"{per_update}{statistics.median(r['wall_s'] for r in runs) / 60:.1f} min per run "
-            f"(commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
+    per_update = f"{min(update):.0f} ms per update, " if update else ""
+    spread = f"; {minutes[0]:.1f}–{minutes[-1]:.1f}" if len(minutes) > 1 else ""
+    return (f"{per_update}{minutes[0]:.1f} min per run (the fastest of {len(minutes)}{spread}; "
+            f"commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
 
 
 def marginals(means: dict[str, float], part: int, scale: float | None = None
@@ -263,8 +273,9 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
         means = {label: statistics.mean(training(runs)) for label, runs in rows}
         best = max(means, key=means.get)
         if study.name == "zeta":
-            lines.append(f"{env_id}: the best ζ is {best.split('=')[1]} ({means[best]:,.0f}); "
-                         + "; ".join(f"{k.split('=')[1]}: {v:,.0f}" for k, v in means.items()))
+            lines.append(f"{env_id}: the best ζ by mean is {best.split('=')[1]} "
+                         f"({means[best]:,.0f}); " + "; ".join(
+                             f"{k.split('=')[1]}: {v:,.0f}" for k, v in means.items()))
             runs = dict(rows)
             if "zeta=0.2" in runs and best != "zeta=0.2":
                 lines.append(versus(env_id, runs[best], runs["zeta=0.2"],
@@ -273,12 +284,12 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
             lines.append(f"{env_id}: fall of the mean curve from its peak by the end: "
                          + "; ".join(f"τ {label.split('=')[1]}: {fall(runs):,.0f}"
                                      for label, runs in rows)
-                         + f"; the best τ is {best.split('=')[1]} ({means[best]:,.0f})")
+                         + f"; the best τ by mean is {best.split('=')[1]} ({means[best]:,.0f})")
         elif study.name == "buffers":
             for part, axis in ((0, "N_u"), (1, "N_p")):
                 lines.append(f"{env_id}: mean normalised return by {axis}: " + "; ".join(
                     f"{value} {m:.2f}" for value, m in marginals(means, part)))
-            lines.append(f"{env_id}: the best cell is {best} ({means[best]:,.0f})")
+            lines.append(f"{env_id}: the best cell by mean is {best} ({means[best]:,.0f})")
             lines += staleness(env_id, rows) + own_buffers(study, env_id, presets[env_id])
         elif study.name == "workers":
             lines.append(f"{env_id}: at 1M steps " + "; ".join(
@@ -294,13 +305,26 @@ def verdict(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
     return "\n".join(f"- {line}" for line in lines)
 
 
-COLLAPSE = 0.2  # a smoothed mean curve ending this fraction or more below its peak collapsed
+COLLAPSE = 0.2  # a curve ending this fraction or more below its peak collapsed
+LEARNED = 0.5  # "stable" needs at least this fraction of the preset's own return on the task
 
 
 def peak_fall(runs: list[dict]) -> float:
     """The fall of the smoothed mean curve from its peak by the end, as a fraction of the peak."""
     peak, end = peak_and_end(runs)
     return (peak - end) / peak if peak > 0 else 0.0
+
+
+def seed_falls(runs: list[dict]) -> list[float]:
+    """Each seed's smoothed curve's fall from its peak by the end, as a fraction of its peak."""
+    return [peak_fall([r]) for r in runs]
+
+
+def collapsed(falls: list[float]) -> int | None:
+    """+1 where the seeds' falls are a collapse beyond their spread (mean − std above
+    `COLLAPSE`), −1 where they stay below it beyond the spread (mean + std under it), 0 within
+    the spread; None with one seed."""
+    return against_bar(falls, COLLAPSE)
 
 
 def at_minutes(runs: list[dict], minutes: float) -> list[float]:
@@ -313,131 +337,242 @@ def value(label: str) -> float:
     return float(label.split("=")[1])
 
 
-def zeta_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+def above_all(name: str, ours: list[float], others: dict[str, list[float]]
+              ) -> tuple[str, bool | None]:
+    """Whether `ours` is higher than each of `others` beyond the seed spread (`compare`): the
+    verdict per rival and whether it holds against every one; None while one rests on one
+    seed."""
+    results = {k: compare(ours, v) for k, v in others.items()}
+    text = f"{name} {cell(ours)} against " + ", ".join(
+        f"{k} {cell(v)} ({VERDICT[results[k]]})" for k, v in others.items())
+    if None in results.values():
+        return text, None
+    return text, all(r == 1 for r in results.values())
+
+
+def zeta_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+               ) -> list[tuple[str, bool | None]]:
+    """A peak inside the range: the ζ with the highest mean is not an end and is higher than
+    both ends beyond the seed spread. ζ 0.2 the best: higher than every other ζ beyond the
+    spread (the paper's "optimal choice"; level with another is not the best). ζ 0.2 above
+    ζ 0, beyond the spread."""
     means = {k: statistics.mean(training(v)) for k, v in runs.items()}
     best = max(means, key=means.get)
     ends = (min(runs, key=value), max(runs, key=value))
-    parts = [(f"a peak inside the range (the best is {best}, not an end)", best not in ends)]
-    if "zeta=0.2" in runs and best != "zeta=0.2":
-        text, higher = spread_test("ζ 0.2 level with the best", best, training(runs[best]),
-                                   "zeta=0.2", training(runs["zeta=0.2"]))
-        parts.append((text, None if higher is None else not higher))
-    elif "zeta=0.2" in runs:
-        parts.append(("ζ 0.2 is the best", True))
+    parts = []
+    if best in ends:
+        parts.append((f"a peak inside the range: the highest mean is {best}, an end", False))
+    else:
+        text, ok = above_all(best, training(runs[best]),
+                             {k: training(runs[k]) for k in ends})
+        parts.append((f"a peak inside the range, above both ends beyond the seed spread: "
+                      f"{text}", ok))
+    if "zeta=0.2" in runs:
+        text, ok = above_all("zeta=0.2", training(runs["zeta=0.2"]),
+                             {k: training(v) for k, v in runs.items() if k != "zeta=0.2"})
+        parts.append((f"ζ 0.2 the best, above every other ζ beyond the seed spread: {text}", ok))
     if "zeta=0.2" in runs and "zeta=0" in runs:
         parts.append(spread_test("ζ 0.2 above ζ 0 (the plain policy gradient)", "zeta=0.2",
                                  training(runs["zeta=0.2"]), "zeta=0", training(runs["zeta=0"])))
     return parts
 
 
-def tau_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
-    falls = {k: peak_fall(v) for k, v in runs.items()}
+def tau_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+              ) -> list[tuple[str, bool | None]]:
+    """τ ≥ 0.01 falls sharply: more than half of those τ collapse beyond the seed spread
+    (`collapsed`: each seed's fall from its peak, mean − std ≥ `COLLAPSE`). The smallest τ
+    stable: it learned (its mean return at least `LEARNED` of the preset's own runs' on the
+    task: a run that barely learns has nothing to fall from) and its seeds stay below a
+    collapse beyond the spread (mean + std under `COLLAPSE`). Limited: the τ with the highest
+    mean above it beyond the spread."""
+    falls = {k: seed_falls(v) for k, v in runs.items()}
     big = [k for k in runs if value(k) >= 0.01]
-    fell = [k for k in big if falls[k] >= COLLAPSE]
-    parts = [(f"τ ≥ 0.01 falls sharply mid-training (≥ {COLLAPSE:.0%} below its peak by the "
-              f"end): {len(fell)} of {len(big)} (" + "; ".join(
-                  f"τ {k.split('=')[1]} {falls[k]:.0%}" for k in big) + ")",
-              len(fell) * 2 > len(big))]
+    verdicts = {k: collapsed(falls[k]) for k in big}
+    fell = [k for k in big if verdicts[k] == 1]
+    text = (f"τ ≥ 0.01 falls sharply mid-training (≥ {COLLAPSE:.0%} below its peak by the end, "
+            f"beyond the seed spread): {len(fell)} of {len(big)} (" + "; ".join(
+                f"τ {k.split('=')[1]} {cell(falls[k], '.0%')}" for k in big) + ")")
+    one_seed = None in verdicts.values()
+    parts = [(text + (f", {NOT_JUDGED}" if one_seed else ""),
+              None if one_seed else len(fell) * 2 > len(big))]
     smallest = min(runs, key=value)
+    stable = collapsed(falls[smallest])
+    ours = statistics.mean(training(runs[smallest]))
+    text = (f"{smallest} stays stable: it falls {cell(falls[smallest], '.0%')}, "
+            + ("below a collapse beyond the seed spread" if stable == -1 else
+               "not below a collapse beyond the seed spread"))
+    if stable is None:
+        parts.append((f"{smallest} stays stable: it falls {cell(falls[smallest], '.0%')}, "
+                      f"{NOT_JUDGED}", None))
+    elif not own:
+        parts.append((f"{text}; the preset's own runs on {env_id} are missing, so that it "
+                      f"learned (at least {LEARNED:.0%} of their return) is not shown", False))
+    else:
+        preset = statistics.mean(training(own))
+        learned = ours >= LEARNED * preset
+        parts.append((f"{text}; it reached {ours:,.0f}, "
+                      + (f"at least {LEARNED:.0%} of the preset's {preset:,.0f} on {env_id}"
+                         if learned else
+                         f"under {LEARNED:.0%} of the preset's {preset:,.0f} on {env_id}: too "
+                         "little learning to call stable"),
+                      learned and stable == -1))
     best = max(runs, key=lambda k: statistics.mean(training(runs[k])))
-    parts.append((f"{smallest} stays stable (falls {falls[smallest]:.0%})",
-                  falls[smallest] < COLLAPSE))
     if best != smallest:
         parts.append(spread_test(f"{smallest} limited", best, training(runs[best]), smallest,
                                  training(runs[smallest])))
     return parts
 
 
-def buffer_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+def by_axis(runs: dict[str, list[dict]], part: int) -> dict[str, list[float]]:
+    """Per value of one buffer axis (0: N_u, 1: N_p), in the study's order, per seed the mean
+    training return over the other axis's cells (the seeds every one of those cells ran)."""
+    cells: dict[str, list[dict[int, float]]] = {}
+    for label, rs in runs.items():
+        cells.setdefault(label.split(",")[part].split("=")[1], []).append(
+            {r.get("seed", i): r["final_return"] for i, r in enumerate(rs)})
+    out = {}
+    for axis_value, seeds_of in cells.items():
+        common = set.intersection(*(set(c) for c in seeds_of))
+        out[axis_value] = [statistics.mean(c[s] for c in seeds_of) for s in sorted(common)]
+    return out
+
+
+def buffer_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+                 ) -> list[tuple[str, bool | None]]:
+    """A larger uniform buffer does better: the largest N_u's return (mean over the N_p cells,
+    per seed) above the smallest's beyond the seed spread. The largest prioritised buffer does
+    worse: the N_p with the highest such mean is a smaller one, above the largest beyond the
+    spread. A cell with one seed has no spread: then neither part is judged and the direction
+    is shown alone."""
     means = {k: statistics.mean(training(v)) for k, v in runs.items()}
     nu, np_ = marginals(means, 0), marginals(means, 1)
     top = max(np_, key=lambda x: x[1])
-    return [(f"a larger uniform buffer does better: N_u {nu[0][0]} {nu[0][1]:.2f} → "
-             f"{nu[-1][0]} {nu[-1][1]:.2f} (one seed: direction only)", nu[-1][1] > nu[0][1]),
-            (f"the largest prioritised buffer does worse than a smaller one: N_p {np_[-1][0]} "
-             f"{np_[-1][1]:.2f} against the best, {top[0]} {top[1]:.2f} (one seed: direction "
-             "only)", top[0] != np_[-1][0])]
+    direction = (f"N_u {nu[0][0]} {nu[0][1]:.2f} → {nu[-1][0]} {nu[-1][1]:.2f}",
+                 f"N_p {np_[-1][0]} {np_[-1][1]:.2f} against the highest, {top[0]} "
+                 f"{top[1]:.2f}")
+    if any(len(v) < 2 for v in runs.values()):
+        why = "normalised to the best cell; one seed per cell: no spread, the direction alone"
+        return [(f"a larger uniform buffer does better: {direction[0]} ({why})", None),
+                (f"the largest prioritised buffer does worse than a smaller one: "
+                 f"{direction[1]} ({why})", None)]
+    u, q = by_axis(runs, 0), by_axis(runs, 1)
+    smallest, largest = list(u)[0], list(u)[-1]
+    parts = [spread_test("a larger uniform buffer does better", f"N_u {largest}", u[largest],
+                         f"N_u {smallest}", u[smallest])]
+    biggest = list(q)[-1]
+    best = max(q, key=lambda k: statistics.mean(q[k]))
+    if best == biggest:
+        parts.append((f"the largest prioritised buffer does worse than a smaller one: N_p "
+                      f"{biggest} {cell(q[biggest])} has the highest mean", False))
+    else:
+        parts.append(spread_test("the largest prioritised buffer does worse than a smaller one",
+                                 f"N_p {best}", q[best], f"N_p {biggest}", q[biggest]))
+    return parts
 
 
-def worker_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+def worker_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+                 ) -> list[tuple[str, bool | None]]:
+    """Better sooner: the most workers above the fewest after the same training minutes,
+    beyond the seed spread. The gains diminish: the first step's gain is a gain beyond the
+    spread (`compare`) and exceeds the last step's by more than the two gains' combined spread
+    (`grows`); the steps between are shown, not judged."""
     runs = {k: v for k, v in runs.items() if all(r.get("clock") for r in v)}
     if len(runs) < 2:
         return []
     counts = sorted(runs, key=value)
     end = min(clock_curve(r)[0][-1] for v in runs.values() for r in v) / 60.0
     at = {k: at_minutes(runs[k], end) for k in counts}
-    means = [statistics.mean(at[k]) for k in counts]
     parts = [spread_test(f"more workers, better sooner (after {end:.1f} training minutes)",
                          counts[-1], at[counts[-1]], counts[0], at[counts[0]])]
-    gains = [b - a for a, b in pairwise(means)]
-    if len(gains) >= 2:
-        parts.append((f"the gains diminish: {' → '.join(counts)} add " + ", ".join(
-            f"{g:+,.0f}" for g in gains), all(b < a for a, b in pairwise(gains))))
+    if len(counts) >= 3:
+        gains = [difference(at[b], at[a]) for a, b in pairwise(counts)]
+        first = compare(at[counts[1]], at[counts[0]])
+        shrink, spread = grows(gains[0], gains[-1])
+        text = (f"the gains diminish: {' → '.join(counts)} add "
+                + ", ".join(gap_cell(g) for g in gains))
+        if first is None or shrink is None:
+            parts.append((f"{text}: {NOT_JUDGED}", None))
+        else:
+            parts.append((f"{text}; the first {'is' if first == 1 else 'is not'} a gain beyond "
+                          f"the seed spread, and exceeds the last by "
+                          f"{gains[0][0] - gains[-1][0]:+,.0f} against their combined spread of "
+                          f"{spread:,.0f} ({VERDICT[shrink]})", first == 1 and shrink == 1))
     return parts
 
 
-def pair_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+def pair_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+               ) -> list[tuple[str, bool | None]]:
     (a, ours), (b, theirs) = list(runs.items())[:2]
     return [spread_test(f"{env_id}: {a} above {b}", a, training(ours), b, training(theirs))]
 
 
-def kl_parts(runs: dict[str, list[dict]], env_id: str) -> list[tuple[str, bool | None]]:
+def kl_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
+             ) -> list[tuple[str, bool | None]]:
     """Stability: the return, and how far each seed's smoothed curve falls from its peak by the
     end. The KL term stabilises where the other falls further beyond the seed spread and its
-    mean fall is a collapse (`COLLAPSE`): small falls both ways leave nothing to stabilise."""
+    falls are a collapse beyond their spread (`collapsed`): small falls both ways leave
+    nothing to stabilise."""
     (a, ours), (b, theirs) = list(runs.items())[:2]
-    mine, other = ([peak_fall([r]) for r in rs] for rs in (ours, theirs))
+    mine, other = seed_falls(ours), seed_falls(theirs)
     result = compare(other, mine)  # +1: the other falls further, beyond the spread
     text = (f"{env_id}: {a} falls less from its peak than {b}, which collapses (≥ "
-            f"{COLLAPSE:.0%}): {cell(mine, '.0%')} against {cell(other, '.0%')}, "
-            + {1: "less", 0: "within the seed spread", -1: "more", None: "one seed"}[result])
-    collapsed = statistics.mean(other) >= COLLAPSE
-    if result == 1 and not collapsed:
-        text += f", but {b} falls less than {COLLAPSE:.0%}"
-    return pair_parts(runs, env_id) + [
-        (text, None if result is None else result == 1 and collapsed)]
+            f"{COLLAPSE:.0%} beyond the seed spread): {cell(mine, '.0%')} against "
+            f"{cell(other, '.0%')}, "
+            + {1: "less", 0: "within the seed spread", -1: "more", None: NOT_JUDGED}[result])
+    fell = collapsed(other) == 1
+    if result == 1 and not fell:
+        text += f", but {b}'s fall is not a collapse beyond the seed spread"
+    return pair_parts(runs, env_id, own) + [
+        (text, None if result is None else result == 1 and fell)]
 
 
 PARTS = {"zeta": zeta_parts, "tau": tau_parts, "buffers": buffer_parts, "workers": worker_parts,
          "priority": pair_parts, "kl": kl_parts}
 
 
-def statement_parts(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]
+def statement_parts(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
+                    own: dict[str, list[dict]] | None = None
                     ) -> tuple[list[tuple[str, bool | None]], int]:
     """The parts of the paper's statement the runs present can judge, and how many runs are
-    missing."""
+    missing; `own`: per task the preset's own runs (the comparison grid's), for the parts
+    that need a minimum of learning."""
     parts, missing = [], 0
     for env_id, rows in by_env.items():
         missing += sum(len(study.seeds) - len(r) for _, r in rows)
         runs = {label: r for label, r in rows if r}
         if len(runs) < 2:
             continue
-        parts += PARTS[study.name](runs, env_id)
+        parts += PARTS[study.name](runs, env_id, (own or {}).get(env_id, []))
     return parts, missing
 
 
-def holds(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str:
+def holds(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
+          own: dict[str, list[dict]] | None = None) -> str:
     """Whether the paper's statement holds here, part by part, with the numbers
     (`paper_report.judgement`)."""
-    return judgement(*statement_parts(study, by_env))
+    return judgement(*statement_parts(study, by_env, own))
 
 
-def glance(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]]) -> str:
+def glance(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
+           own: dict[str, list[dict]] | None = None) -> str:
     """The study's row of the summary table: the claim, its verdict and how many parts hold."""
-    parts, missing = statement_parts(study, by_env)
+    parts, missing = statement_parts(study, by_env, own)
     if not parts:
         here = "too few runs for a verdict yet"
     else:
         state = outcome(parts)
-        here = (f"{state or 'no verdict yet (one seed)'}: {sum(ok is True for _, ok in parts)} "
-                f"of {len(parts)} parts")
+        unjudged = sum(ok is None for _, ok in parts)
+        here = (f"{state}: {sum(ok is True for _, ok in parts)} of {len(parts)} parts"
+                if state else f"not judged: {unjudged} of {len(parts)} parts rest on one seed "
+                "(no spread)")
     if missing:
         here += f" (provisional: {missing} run{'s' * (missing != 1)} missing)"
     return f"| {study.name} | {study.figure} | {CLAIM[study.name]} | {here} |"
 
 
-def glance_table(all_studies: dict[str, Study], by_study: dict[str, dict]) -> str:
-    rows = [glance(s, by_study[s.name]) for s in all_studies.values()]
+def glance_table(all_studies: dict[str, Study], by_study: dict[str, dict],
+                 own: dict[str, dict[str, list[dict]]] | None = None) -> str:
+    rows = [glance(s, by_study[s.name], (own or {}).get(s.name)) for s in all_studies.values()]
     return "\n".join(["| study | paper | its statement | here, at 1M env steps |",
                       "|---|---|---|---|", *rows])
 
@@ -446,6 +581,12 @@ def rows_of(study: Study, presets: dict[str, dict]) -> dict[str, list[tuple[str,
     """Per task, each cell's label and its runs present."""
     return {env_id: [(c.label, cell_runs(study, env_id, c, presets[env_id]))
                      for c in study.cells] for env_id in study.envs}
+
+
+def own_runs(study: Study, presets: dict[str, dict]) -> dict[str, list[dict]]:
+    """Per task the preset's own runs on the study's seeds (the comparison grid's)."""
+    return {env_id: cell_runs(study, env_id, Cell("preset"), presets[env_id])
+            for env_id in study.envs}
 
 
 def own_buffers(study: Study, env_id: str, preset: dict) -> list[str]:
@@ -461,7 +602,7 @@ def own_buffers(study: Study, env_id: str, preset: dict) -> list[str]:
 
 
 def section(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
-            presets: dict[str, dict]) -> str:
+            presets: dict[str, dict], own: dict[str, list[dict]] | None = None) -> str:
     out = [f"## {study.name}: {study.figure}", "",
            textwrap.fill(f"The paper: {PAPER[study.name]}", 98), "",
            f"`python bench/ablate.py --studies {study.name}` "
@@ -498,7 +639,7 @@ def section(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
         out.append("")
     lines = verdict(study, by_env, presets)
     out += ["What the runs say:", "", lines or "- too few runs for a verdict yet."]
-    judged = holds(study, by_env)
+    judged = holds(study, by_env, own)
     if judged:
         out += ["", judged]
     return "\n".join(out)
@@ -515,12 +656,30 @@ episodic return over the last 10 % of steps, the evaluation return the final che
 per env step); curves are mean ± std over seeds of the 20-point moving average. A run on the
 preset's own settings is the comparison grid's (`docs/data/paper/`). Seeds 11–13 (buffers: 11),
 never used for tuning. A difference counts where the means differ by more than the larger seed
-standard deviation.
+standard deviation; a trend (gains that diminish) where the change between its ends exceeds their
+combined spread (the root sum of squares of the seed standard deviations); a fall from the peak
+is a collapse where its mean less its standard deviation is 20 % or more. A cell with one seed
+has no spread: its part reads "not judged", never a yes or no by its direction.
 
     python bench/ablate.py            # runs what is missing (resumable; many hours)
     python bench/ablate.py --plan     # which runs exist
     python bench/ablate.py --report   # rewrites this page and docs/img/ablation/
 """
+
+
+# a block bench/provenance.py keeps under the page's title: carried over when the page is rewritten
+PROVENANCE = "<!-- provenance:begin -->", "<!-- provenance:end -->"
+
+
+def header(doc: Path) -> str:
+    """HEADER, with the page's provenance block (if it has one) kept under the title."""
+    text = doc.read_text() if doc.exists() else ""
+    begin, end = PROVENANCE
+    if begin not in text or end not in text:
+        return HEADER
+    block = text[text.index(begin):text.index(end) + len(end)]
+    title, rest = HEADER.split("\n", 1)
+    return f"{title}\n\n{block}\n{rest}"
 
 
 def report(runs) -> None:
@@ -531,12 +690,14 @@ def report(runs) -> None:
     made = [json.loads(r.path.read_text()) for r in runs if r.path.exists()]
     codes = sorted({m.get("code", "?") for m in made})
     hosts = Counter(m.get("host", "the 2-core machine (the learner on its CPU)") for m in made)
-    parts = [HEADER, f"Runs present: {len(made)} of {len(runs)}"
+    parts = [header(DOC), f"Runs present: {len(made)} of {len(runs)}"
              + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)}" if codes else "")
              + "".join(f"; {n} on {host}" for host, n in hosts.most_common()) + "."]
     by_study = {s.name: rows_of(s, presets) for s in all_studies.values()}
-    table = glance_table(all_studies, by_study)
-    parts += [table] + [section(s, by_study[s.name], presets) for s in all_studies.values()]
+    own = {s.name: own_runs(s, presets) for s in all_studies.values()}
+    table = glance_table(all_studies, by_study, own)
+    parts += [table] + [section(s, by_study[s.name], presets, own[s.name])
+                        for s in all_studies.values()]
     DOC.write_text("\n\n".join(parts) + "\n")
     print(f"wrote {DOC}")
     if replace_between(RESULTS, *SUMMARY, f"{table}\n\nEach row's numbers: [ABLATIONS]"

@@ -88,14 +88,37 @@ def table(results: list[dict], env_id: str) -> str:
     return "\n".join(out)
 
 
-def leads(results: list[dict], env_id: str, base: str) -> list[tuple[float, float]]:
-    """(link, TPDEB's mean return minus `base`'s) for each link both ran, widest first."""
+def leads(results: list[dict], env_id: str, base: str
+          ) -> list[tuple[float, tuple[float, float | None]]]:
+    """(link, TPDEB's lead over `base`: the difference of the mean returns and its seed
+    spread, `paper_report.difference`) for each link both ran, widest first."""
     out = []
     for link in links_of(results):
         ours, theirs = (final(runs_of(results, env_id, system, link)) for system in ("tpdeb", base))
         if ours and theirs:
-            out.append((link, statistics.mean(ours) - statistics.mean(theirs)))
+            out.append((link, paper_report.difference(ours, theirs)))
     return out
+
+
+# the lead's trend as a sentence's verb, and as a short verdict
+TREND = {1: "grows", 0: "neither grows nor shrinks beyond the seed spread", -1: "shrinks",
+         None: "is not judged (one seed, no spread)"}
+GROWTH = {1: "grows", 0: "within the seed spread", -1: "shrinks", None: paper_report.NOT_JUDGED}
+
+
+def lead_trend(gaps: list[tuple[float, tuple[float, float | None]]]) -> tuple[int | None, str]:
+    """Whether TPDEB's lead grows as the link thins, and the line that says so. The rule, kept
+    conservative: the lead at the thinnest link minus the lead at the widest must exceed their
+    combined seed spread (`paper_report.grows`: the root sum of squares of all four seed stds);
+    the leads between are shown, not judged. None with one seed on a side (no spread)."""
+    (wide, wide_gap), (thin, thin_gap) = gaps[0], gaps[-1]
+    result, spread = paper_report.grows(thin_gap, wide_gap)
+    between = "".join(f", {paper_report.gap_cell(g)} at {link_name(link)}"
+                      for link, g in gaps[1:-1])
+    rule = ("" if spread is None else f"; the change {thin_gap[0] - wide_gap[0]:+,.0f} against "
+            f"a combined spread of {spread:,.0f}")
+    return result, (f"{paper_report.gap_cell(wide_gap)} at {link_name(wide)}{between}, "
+                    f"{paper_report.gap_cell(thin_gap)} at {link_name(thin)}{rule}")
 
 
 def verdict(results: list[dict], env_id: str) -> list[str]:
@@ -120,18 +143,17 @@ def verdict(results: list[dict], env_id: str) -> list[str]:
     for base in ALGOS[1:]:
         mine = leads(results, env_id, base)
         if len(mine) >= 2:
-            widest, thinnest = mine[0], mine[-1]
-            trend = "grows" if thinnest[1] > widest[1] else "does not grow"
-            lines.append(f"TPDEB's lead over {NAMES[base]} {trend} as the link thins: "
-                         f"{widest[1]:+,.0f} at {link_name(widest[0])}, {thinnest[1]:+,.0f} at "
-                         f"{link_name(thinnest[0])}")
+            result, text = lead_trend(mine)
+            lines.append(f"TPDEB's lead over {NAMES[base]} {TREND[result]} as the link thins: "
+                         f"{text}")
     return lines
 
 
 def claim_parts(results: list[dict], env_id: str) -> tuple[list[tuple[str, bool | None]], int]:
     """The paper's claim, TPDEB ahead "especially under constrained actor–learner bandwidth",
     in parts: at the thinnest link run, TPDEB above each baseline beyond the seed spread, and
-    its lead larger there than on the widest link; with the count of the grid's runs missing."""
+    its lead larger there than on the widest link by more than the two leads' combined spread
+    (`lead_trend`); with the count of the grid's runs missing."""
     mine = [r for r in results if r["env_id"] == env_id]
     present = {(r["system"], r["link"], r["seed"]) for r in mine}
     missing = sum((a, link, s) not in present for a in ALGOS for link in LINKS for s in SEEDS)
@@ -140,14 +162,16 @@ def claim_parts(results: list[dict], env_id: str) -> tuple[list[tuple[str, bool 
         gaps = leads(mine, env_id, base)
         if not gaps:
             continue
-        (wide, wide_gap), (thin, thin_gap) = gaps[0], gaps[-1]
+        wide, thin = gaps[0][0], gaps[-1][0]
         parts.append(spread_test(f"TPDEB above {NAMES[base]} at {link_name(thin)}", "TPDEB",
                                  final(runs_of(mine, env_id, "tpdeb", thin)), NAMES[base],
                                  final(runs_of(mine, env_id, base, thin))))
         if len(gaps) >= 2:
+            result, text = lead_trend(gaps)
             parts.append((f"TPDEB's lead over {NAMES[base]} larger at {link_name(thin)} than at "
-                          f"{link_name(wide)}: {thin_gap:+,.0f} against {wide_gap:+,.0f}",
-                          thin_gap > wide_gap))
+                          f"{link_name(wide)} beyond the seed spread: {text}: "
+                          f"{GROWTH[result]}",
+                          None if result is None else result == 1))
     return parts, missing
 
 
@@ -184,7 +208,9 @@ def headline(results: list[dict], env_id: str) -> str:
         if theirs and gaps:
             rivals.append(f"{times(ours, theirs)}{NAMES[base]}'s {cell(theirs)} "
                           f"({VERDICT[compare(ours, theirs)]})")
-            trends.append(f"over {NAMES[base]} {gaps[0][1]:+,.0f} → {gaps[-1][1]:+,.0f}")
+            result = paper_report.grows(gaps[-1][1], gaps[0][1])[0] if len(gaps) >= 2 else None
+            trends.append(f"over {NAMES[base]} {gaps[0][1][0]:+,.0f} → {gaps[-1][1][0]:+,.0f} "
+                          f"({GROWTH[result]})")
     minutes = statistics.median(r["budget_s"] for r in mine) / 60
     text = (f"**{env_id}, {minutes:g} minutes of training behind each link, "
             f"{seeds(len({r['seed'] for r in mine}))}** — the paper's claim "

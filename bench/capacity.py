@@ -359,6 +359,9 @@ def main() -> None:
     if args.report:
         return report(args.report)
     sys.path.insert(0, str(Path(__file__).resolve().parent))
+    import provenance
+
+    record = provenance.start()
     OUT.mkdir(parents=True, exist_ok=True)
     result = {"cores": os.cpu_count(), "env_id": args.env_id, "args": vars(args),
               "ingest": [ingest(args, persist, n) for persist in (True, False)
@@ -366,6 +369,7 @@ def main() -> None:
               "forwarding": [forwarding(args, n) for n in args.actors],
               "learner": learner_ceilings(args), "acting": acting_rates(args)}
     result["plan_markdown"] = plan_table(result)
+    provenance.stamp(result, record)
     (OUT / "results.json").write_text(json.dumps(result, indent=1))
     print()
     print(result["plan_markdown"])

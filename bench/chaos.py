@@ -46,7 +46,9 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import provenance  # noqa: E402
 from bandwidth import UNLIMITED  # noqa: E402  the link is there, but never the bottleneck
+from paper_report import compare  # noqa: E402
 from procfs import cmdline, descendants, proc_table, service_name  # noqa: E402
 
 from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode  # noqa: E402
@@ -56,6 +58,8 @@ ROOT = Path(__file__).resolve().parents[1]
 KINDS = ("kill", "hang", "partition")
 GAP_S = (10.0, 30.0)
 HOLD_S = (5.0, 20.0)
+RECOVERY_LIMIT_S = 10.0  # a fault not recovered from within this long fails the run
+RULE_VERSION = 2  # of `judge`; 1: no loss, no duplicate, versions monotone, last > first
 
 
 def say(text: str) -> None:
@@ -319,15 +323,25 @@ def returns(run_dir: Path) -> dict:
     """Mean training return of the episodes in the first and the last 10 % of the steps."""
     from tpdeb.services.store.metrics import read_metrics
 
-    rows = [(r["global_step"], r["charts/episodic_return"])
-            for r in read_metrics(run_dir / "metrics.jsonl") if "charts/episodic_return" in r]
+    return returns_of([(r["global_step"], r["charts/episodic_return"])
+                       for r in read_metrics(run_dir / "metrics.jsonl")
+                       if "charts/episodic_return" in r])
+
+
+def returns_of(rows: list[tuple[int, float]]) -> dict:
+    """(step, episodic return) pairs to the first and last 10 %'s means, stds and whether the
+    last is above the first beyond the larger of the two stds."""
     if not rows:
         return {"first": None, "last": None, "learned": False}
     top = max(step for step, _ in rows)
-    first = statistics.fmean(r for s, r in rows if s <= 0.1 * top)
-    last = statistics.fmean(r for s, r in rows if s >= 0.9 * top)
-    return {"first": round(first, 1), "last": round(last, 1), "steps": top,
-            "learned": last > first}
+    first = [r for s, r in rows if s <= 0.1 * top]
+    last = [r for s, r in rows if s >= 0.9 * top]
+    return {"first": round(statistics.fmean(first), 1), "last": round(statistics.fmean(last), 1),
+            "first_std": round(statistics.stdev(first), 1) if len(first) > 1 else None,
+            "last_std": round(statistics.stdev(last), 1) if len(last) > 1 else None,
+            "first_episodes": len(first),
+            "last_episodes": len(last), "steps": top,
+            "learned": compare(last, first) == 1}
 
 
 def summarise(chaos: Chaos, code: int) -> dict:
@@ -343,6 +357,9 @@ def summarise(chaos: Chaos, code: int) -> dict:
         rows = [r for r in chaos.injected if r["kind"] == kind and "skipped" not in r]
         times = [r["recovery_s"] for r in rows if r["recovery_s"] is not None]
         by_kind[kind] = {"injected": len(rows), "recovered": len(times),
+                         "skipped": sum(r["kind"] == kind and "skipped" in r
+                                        for r in chaos.injected),
+                         "within_limit": sum(t <= RECOVERY_LIMIT_S for t in times),
                          "median_s": round(statistics.median(times), 1) if times else None,
                          "max_s": round(max(times), 1) if times else None}
     return {"seed": chaos.args.seed, "minutes": chaos.args.minutes, "env_id": chaos.args.env_id,
@@ -355,10 +372,11 @@ def summarise(chaos: Chaos, code: int) -> dict:
 
 def report(result: dict) -> str:
     a, r = result["audit"], result["return"]
-    lines = ["| fault | injected | recovered | median recovery (s) | max (s) |",
-             "|---|---|---|---|---|"]
+    lines = [f"| fault | injected | skipped | recovered | within {RECOVERY_LIMIT_S:g} s | "
+             "median recovery (s) | max (s) |", "|---|---|---|---|---|---|---|"]
     for kind, k in result["by_kind"].items():
-        lines.append(f"| {kind} | {k['injected']} | {k['recovered']} | "
+        lines.append(f"| {kind} | {k['injected']} | {k.get('skipped', '—')} | {k['recovered']} | "
+                     f"{k.get('within_limit', '—')} | "
                      f"{k['median_s'] if k['median_s'] is not None else '—'} | "
                      f"{k['max_s'] if k['max_s'] is not None else '—'} |")
     lines += ["", f"fragments acknowledged {a['acknowledged']:,}, stored {a['stored']:,}: "
@@ -367,15 +385,41 @@ def report(result: dict) -> str:
               f"parameter versions monotone at the learner and at all "
               f"{len(result['version_series']) - 1} actor processes: "
               f"{'yes' if result['versions_monotone'] else 'NO'}",
-              f"return {r['first']} in the first 10 % of steps → {r['last']} in the last "
+              f"return {r['first']} (± {r.get('first_std')}) in the first 10 % of steps → "
+              f"{r['last']} (± {r.get('last_std')}) in the last "
               f"({r.get('steps', 0):,} steps); exit code {result['exit_code']}"]
     return "\n".join(lines)
 
 
-def passed(result: dict) -> bool:
-    a = result["audit"]
-    return (result["exit_code"] == 0 and a["lost"] == 0 and a["duplicated"] == 0
-            and result["versions_monotone"] and result["return"]["learned"])
+def judge(result: dict) -> list[str]:
+    """Why a chaos run fails (an empty list: it passes), by the rule fixed before the run
+    (version RULE_VERSION): the run exits 0; no acknowledged fragment lost, none stored twice;
+    parameter versions never go back; every scheduled fault was injected (a target not running
+    when its fault came had not come back from the previous one, at least 10 s earlier) and
+    recovered from within RECOVERY_LIMIT_S; and the return in the last 10 % of the steps is
+    above the first 10 %'s by more than the larger std of their episodes."""
+    a, r, why = result["audit"], result["return"], []
+    if result["exit_code"] != 0:
+        why.append(f"the run exited with {result['exit_code']}")
+    if a["lost"] or a["duplicated"]:
+        why.append(f"{a['lost']} acknowledged fragments lost, {a['duplicated']} duplicated")
+    if not result["versions_monotone"]:
+        why.append("a parameter version went back")
+    for row in result["faults"]:
+        name = f"{row['kind']} {row['target']} at {row['at_s']:.0f} s"
+        if "skipped" in row:
+            why.append(f"{name}: not injected ({row['skipped']})")
+        elif row.get("recovery_s") is None:
+            why.append(f"{name}: never recovered")
+        elif row["recovery_s"] > RECOVERY_LIMIT_S:
+            why.append(f"{name}: recovered in {row['recovery_s']:.1f} s > "
+                       f"{RECOVERY_LIMIT_S:g} s")
+    if not r["learned"]:
+        why.append(f"the return did not rise beyond its episodes' spread: {r['first']} "
+                   f"(± {r.get('first_std')}) in the first 10 % → {r['last']} "
+                   f"(± {r.get('last_std')}) in the last")
+    return why
+
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -397,6 +441,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{f.at_s:7.1f} s  {f.kind:9s} {f.target}"
                   + (f" for {f.hold_s:g} s" if f.hold_s else ""))
         return 0
+    record = provenance.start()
     out.mkdir(parents=True, exist_ok=True)
     chaos.run_dir = Path(tempfile.mkdtemp(prefix="chaos-", dir=out)) / "run"
     try:
@@ -404,17 +449,20 @@ def main(argv: list[str] | None = None) -> int:
         code = chaos.run()
     finally:
         chaos.stop()
-    result = summarise(chaos, code)
+    result = provenance.stamp(summarise(chaos, code), record)
     chaos.wire.close()
+    why = judge(result)
+    provenance.add_verdict(result, "bench/chaos.py:judge", RULE_VERSION, not why, why)
     text = json.dumps(result, indent=1)
     (chaos.run_dir.parent / "result.json").write_text(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)
     print(report(result))
-    ok = passed(result)
-    say("PASS" if ok else "FAIL")
-    return 0 if ok else 1
+    for line in why:
+        say(f"  {line}")
+    say("FAIL" if why else "PASS")
+    return 1 if why else 0
 
 
 if __name__ == "__main__":

@@ -40,6 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "crowd"
 DATA = ROOT / "docs" / "data" / "crowd"
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import provenance  # noqa: E402
 
 
 def crowd(args) -> None:
@@ -164,6 +165,7 @@ def main() -> None:
     parser.add_argument("--flooder", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help="the router's (default: a free port on loopback)")
     args = parser.parse_args()
+    args.record = provenance.start()
     if args.actors < 1 or args.window < 1 or args.seconds <= 0 or args.resend_after_s <= 0:
         parser.error("--actors and --window must be ≥ 1, --seconds and --resend-after-s > 0")
     if args.crowd:
@@ -260,7 +262,7 @@ def report(args, child: dict, probe: dict, rss: list[int], cores: dict[str, floa
                                    if probe["ready"] else float("nan")),
         "replay_rss_mib": {"start": rss[0] / 2**20, "max": max(rss) / 2**20},
         "cores_used": cores}
-    text = json.dumps(result, indent=1)
+    text = json.dumps(provenance.stamp(result, args.record), indent=1)
     (args.out / "results.json").write_text(text)
     if args.save:
         DATA.mkdir(parents=True, exist_ok=True)

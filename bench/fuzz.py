@@ -2,6 +2,7 @@
 
     python bench/fuzz.py                     # 10,000 cases per fuzz test and message type
     python bench/fuzz.py --examples 100000   # longer
+    python bench/fuzz.py --out docs/data/fuzz.json   # the counts kept, with their provenance
 
 The fuzz tests of `tests/test_protocol.py` (every `@given` test there) run through pytest with
 `TPDEB_FUZZ_EXAMPLES` set to `--examples`, so the strategies and properties are exactly the
@@ -17,11 +18,13 @@ would survive it, but a rule tripped over its input.
 Prints, per fuzz test, the cases, crashes and seconds, with the total, and then how many cases
 reached each message type's body decoder (the rest stopped at the envelope: msgpack, version,
 type). Exit status 1 on any crash or failed property, 2 when a fuzz test counted no cases.
+`--out` keeps every count (per test, per message type) and that verdict in a JSON file.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import time
@@ -29,6 +32,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import provenance
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -216,7 +220,9 @@ def main() -> int:
     parser.add_argument("--examples", type=int, default=10_000,
                         help="hypothesis examples per fuzz test (TPDEB_FUZZ_EXAMPLES)")
     parser.add_argument("-k", dest="select", help="only fuzz tests matching this pytest -k")
+    parser.add_argument("--out", type=Path, help="keep the counts and the verdict here (JSON)")
     args = parser.parse_args()
+    record = provenance.start()
     if args.examples < 1:
         parser.error(f"--examples {args.examples}: must be ≥ 1")
     # Read by tests/test_protocol.py when pytest imports it below.
@@ -253,10 +259,38 @@ def main() -> int:
     if short:
         say(f"fewer than {args.examples:,} cases in {short} (hypothesis ran out of examples)")
     crashed = sum(r.crashes for r in counter.runs.values())
+    if args.out is not None:
+        keep(args.out, counter, record, code, short)
     if crashed or code != 0:
         say(f"{crashed} crash(es); pytest exit {int(code)}")
         return 1
     return 0
+
+
+def keep(path: Path, counter: FuzzCounter, record: dict, code: int, short: list[str]) -> None:
+    """The counts, the crashes' kinds and the verdict (no crash and every property held) to
+    `path`."""
+    runs = list(counter.runs.values())
+    by_type = Counter()
+    for r in runs:
+        by_type.update(r.by_type)
+    why = [f"{r.name}: {r.crashes} crash(es)" for r in runs if r.crashes]
+    why += [f"{r.name}: {r.outcome}" for r in runs if r.outcome != "passed"]
+    result = {"examples_per_test": counter.examples, "pytest_exit": int(code),
+              "tests": [{"name": r.name, "cases": r.cases, "crashes": r.crashes,
+                         "seconds": round(r.seconds, 1), "outcome": r.outcome,
+                         "by_type": dict(r.by_type)} for r in runs],
+              "cases": sum(r.cases for r in runs), "crashes": sum(r.crashes for r in runs),
+              "by_type": dict(by_type), "short_of_examples": short,
+              "crash_kinds": [{"test": c.test, "kind": c.kind, "count": c.count,
+                               "smallest_input_hex": c.data[:256].hex()}
+                              for c in counter.crashes.values()],
+              "table_markdown": render(counter)}
+    provenance.stamp(result, record)
+    provenance.add_verdict(result, "bench/fuzz.py:keep", 1, not why, why)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(result, indent=1))
+    say(f"counts in {path}")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ import sys
 import time
 from pathlib import Path
 
+import provenance
 import torch
 from procfs import CpuSampler, cmdline, descendants, service_name
 from throughput import preset_config, sample_batches, timed_loop
@@ -43,15 +44,8 @@ SIZES = ((64, 64), (256, 256), (1024, 1024))
 
 
 def machine(device: torch.device) -> dict:
-    cpu = platform.processor() or "?"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return {"cpu": cpu, "cores": os.cpu_count(), "device": describe(device),
+    m = provenance.machine()
+    return {"cpu": m["cpu"] or "?", "cores": m["cores"], "device": describe(device),
             "torch": torch.__version__, "python": platform.python_version()}
 
 
@@ -183,6 +177,7 @@ def main() -> None:
                         help="training seconds of each cluster run")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
+    record = provenance.start()
     device = resolve_device(args.device)
     OUT.mkdir(parents=True, exist_ok=True)
     result = {"machine": machine(device), "args": vars(args)}
@@ -193,8 +188,10 @@ def main() -> None:
                                                        if args.device != "cpu"]
     for actors, device_name in runs:
         result["cluster"].append(cluster_run(args, actors, device_name))
+        provenance.stamp(result, record)
         (OUT / "results.json").write_text(json.dumps(result, indent=1))
     result["table_markdown"] = tables(result)
+    provenance.stamp(result, record)
     (OUT / "results.json").write_text(json.dumps(result, indent=1))
     print()
     print(result["table_markdown"])

@@ -19,6 +19,8 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+import provenance
+
 ROOT = Path(__file__).resolve().parents[1]
 VARIANTS = {"TPDEB (ζ=0.2, KL on)": ["--zeta", "0.2"], "plain replay (ζ=0, KL on)": ["--zeta", "0"]}
 
@@ -53,6 +55,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "learn"))
     args = parser.parse_args()
+    record = provenance.start()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     jobs = [(args.env_id, args.total_timesteps, seed, name, extra, out_dir)
@@ -61,7 +64,8 @@ def main() -> None:
           f"{args.jobs} at a time; logs in {out_dir}", flush=True)
     with ThreadPoolExecutor(args.jobs) as pool:
         results = list(pool.map(lambda job: run_one(*job), jobs))
-    (out_dir / "results.json").write_text(json.dumps(results))
+    (out_dir / "results.json").write_text(json.dumps(provenance.stamp({"runs": results},
+                                                                      record)))
     print(f"\n{args.env_id}, {args.total_timesteps:,} env steps, seeds {args.seeds}\n")
     print("| variant | final return (mean ± std) | per seed | steps/s (median) |")
     print("|---|---|---|---|")

@@ -20,6 +20,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import provenance
 import torch
 
 from tpdeb.tpdeb_core import policy
@@ -67,6 +68,7 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=3.0, help="per round and implementation")
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "loss_impl.json"))
     args = parser.parse_args()
+    record = provenance.start()
     torch.set_num_threads(1)
     rng = np.random.default_rng(0)
     batches = [batch(rng) for _ in range(16)]
@@ -92,7 +94,7 @@ def main() -> None:
         a, c = r["autograd"]["median_us"], r["closed_form"]["median_us"]
         print(f"| {key} | {a:,.0f} | {c:,.0f} | {a / c:.2f} |")
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.out).write_text(json.dumps(results, indent=1) + "\n")
+    Path(args.out).write_text(json.dumps(provenance.stamp(results, record), indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+import provenance  # noqa: E402
 from runs import ROOT, read_run_metrics, run_cluster, save_json, summarize  # noqa: E402
 
 TASKS = ("HalfCheetah-v5", "Hopper-v5", "Walker2d-v5", "Ant-v5", "Humanoid-v5", "Swimmer-v5")
@@ -66,21 +67,6 @@ def cluster_wall_s(run_dir: Path) -> float:
     return final[-1].path.stat().st_mtime - (run_dir / "cluster.json").stat().st_mtime
 
 
-def code_version() -> str:
-    """The commit the run was made with (+ "-dirty" with uncommitted changes), or "" outside
-    a git checkout."""
-    try:
-        head = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
-                              capture_output=True, text=True, timeout=10)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
-                               cwd=ROOT, capture_output=True, text=True, timeout=10)
-    except OSError:
-        return ""
-    if head.returncode != 0:
-        return ""
-    return head.stdout.strip() + ("-dirty" if dirty.stdout.strip() else "")
-
-
 def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> dict | None:
     """One run to its result file (args: tag, steps, set, timeout_s, eval_episodes; `flags`:
     cluster flags such as --actors); the result, or None where it failed."""
@@ -89,10 +75,12 @@ def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> d
         return json.loads(path.read_text())
     name = path.stem
     run_dir = OUT / args.tag / "runs" / name
+    record = provenance.start()
     code, wall_s = 0, float("nan")
     if finished(run_dir, args.steps):  # trained to the end, then failed to exit cleanly
         print(f"[paper] {env_id} | {algo} | seed {seed}: recording the finished run in "
               f"{run_dir}", flush=True)
+        record["note"] = "recorded from a run dir that finished earlier: its start is not known"
     else:
         if run_dir.exists():  # a run cut short: start it again from nothing
             shutil.rmtree(run_dir)
@@ -113,11 +101,11 @@ def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> d
         wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,
                   overrides=list(args.set) + list(flags), wall_s=round(wall_s, 1),
-                  sps=round(result["steps"] / wall_s, 1), exit_code=code, code=code_version(),
-                  cpus=os.cpu_count())
+                  sps=round(result["steps"] / wall_s, 1), exit_code=code,
+                  code=provenance.short(record), cpus=os.cpu_count())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)
-    save_json(path, result)
+    save_json(path, provenance.stamp(result, record))
     ev = result.get("eval") or {}
     print(f"[paper]   → training return {result['final_return']:,.0f}"
           + (f", evaluation {ev['mean_return']:,.0f} ± {ev['std_return']:,.0f}" if ev else "")

@@ -153,7 +153,46 @@ def compare(ours: list[float], theirs: list[float]) -> int | None:
     return (gap > spread) - (gap < -spread)
 
 
-VERDICT = {1: "higher", 0: "within the seed spread", -1: "lower", None: "one seed"}
+NOT_JUDGED = "not judged: one seed, no spread"
+VERDICT = {1: "higher", 0: "within the seed spread", -1: "lower", None: NOT_JUDGED}
+
+
+def against_bar(values: list[float], bar: float) -> int | None:
+    """+1 where the mean over seeds is above `bar` by more than the seed std, −1 where it is
+    below by more, 0 within the spread; None with a single seed (no spread to judge by)."""
+    if len(values) < 2:
+        return None
+    gap, spread = statistics.mean(values) - bar, statistics.stdev(values)
+    return (gap > spread) - (gap < -spread)
+
+
+def difference(ours: list[float], theirs: list[float]) -> tuple[float, float | None]:
+    """(mean of ours − mean of theirs, its seed spread): the spread is the root sum of squares
+    of the two seed stds; None with a single seed on either side."""
+    gap = statistics.mean(ours) - statistics.mean(theirs)
+    if len(ours) < 2 or len(theirs) < 2:
+        return gap, None
+    return gap, (statistics.stdev(ours) ** 2 + statistics.stdev(theirs) ** 2) ** 0.5
+
+
+def grows(later: tuple[float, float | None], earlier: tuple[float, float | None]
+          ) -> tuple[int | None, float | None]:
+    """The trend between two differences (`difference`), e.g. a lead at the widest and the
+    thinnest link: +1 where `later` exceeds `earlier` by more than their combined spread (the
+    root sum of squares of the two spreads, so of all four seed stds), −1 where it falls short
+    by more, 0 within it; None where either rests on one seed. With the combined spread."""
+    (late, late_spread), (early, early_spread) = later, earlier
+    if late_spread is None or early_spread is None:
+        return None, None
+    spread = (late_spread ** 2 + early_spread ** 2) ** 0.5
+    gap = late - early
+    return (gap > spread) - (gap < -spread), spread
+
+
+def gap_cell(gap: tuple[float, float | None]) -> str:
+    """A difference (`difference`) as "+982 ± 1,516", its mean alone with one seed."""
+    mean, spread = gap
+    return f"{mean:+,.0f}" + ("" if spread is None else f" ± {spread:,.0f}")
 
 
 def spread_test(text: str, a: str, ours: list[float], b: str,
@@ -178,7 +217,8 @@ def outcome(parts: list[tuple[str, bool | None]]) -> str | None:
 def judgement(parts: list[tuple[str, bool | None]], missing: int = 0) -> str:
     """Whether a statement holds, from its parts (text, holds; None: one seed, no spread to
     judge by): 'holds here' when every part does, 'holds in part', 'does not hold here'; no
-    verdict while a part rests on one seed; provisional while `missing` runs are missing."""
+    verdict while a part rests on one seed (that part reads "not judged", never a yes or no by
+    its direction); provisional while `missing` runs are missing."""
     if not parts:
         return ""
     state = outcome(parts)
@@ -186,12 +226,15 @@ def judgement(parts: list[tuple[str, bool | None]], missing: int = 0) -> str:
             if state is None else f"**The paper's statement {state}**")
     note = f" (provisional: {missing} run{'s' * (missing != 1)} still missing)" if missing else ""
     return "\n".join([f"{head}{note}:", ""] + [
-        f"- {'yes' if ok else 'no' if ok is not None else 'one seed'} — {text}"
+        f"- {'yes' if ok else 'no' if ok is not None else 'not judged'} — {text}"
         for text, ok in parts])
 
 
 def claim(title: str, quote: str, lines: list[str], outcomes: list[int], need: str) -> str:
-    """One paper claim: what it says, what was measured per task, whether it holds."""
+    """One paper claim: what it says, what was measured per task, whether it holds. Each
+    comparison counts as a win only where TPDEB is higher beyond the seed spread (`compare`);
+    the claim holds where wins are more than half the comparisons (`need` "most") or all of
+    them ("all"), and is not judged while a comparison rests on one seed."""
     if not outcomes:
         return f"**{title}** ({quote}): no task has all its runs yet."
     wins, losses = outcomes.count(1), outcomes.count(-1)
@@ -250,8 +293,9 @@ def claims(results: list[dict], envs: list[str]) -> str:
         steps = {a: steps_to(by[(e, a)], THRESHOLDS[e]) for a in NAMES}
         table2.append(f"{e}: " + ", ".join(f"{NAMES[a]} {v}" for a, v in steps.items()))
     out.append("**Samples to threshold** (Table 2: \"a sample efficiency advantage in nearly "
-               "all tasks\") — read from the table above; the smoothed mean curves reach "
-               "the thresholds at:\n\n" + "\n".join(f"- {x}" for x in table2)
+               "all tasks\") — described, not judged: where a mean curve crosses a threshold "
+               "has no seed spread to judge by. The smoothed mean curves reach the thresholds "
+               "at:\n\n" + "\n".join(f"- {x}" for x in table2)
                if table2 else "**Samples to threshold** (Table 2): no task has all its runs yet.")
     return "\n\n".join(out)
 

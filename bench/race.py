@@ -33,7 +33,8 @@ import time
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from paper import TASKS, code_version, evaluate  # noqa: E402
+import provenance  # noqa: E402
+from paper import TASKS, evaluate  # noqa: E402
 from runs import ROOT, read_run_metrics, run_cluster, save_json  # noqa: E402
 
 DATA = ROOT / "docs" / "data"
@@ -111,6 +112,7 @@ def run_budgeted(env_id: str, seed: int, budget_s: float, extra: list[str], run_
     failed (`what` names it in the message)."""
     if run_dir.exists():  # a run cut short: start again from nothing
         shutil.rmtree(run_dir)
+    record = provenance.start()
     code, wall_s = run_cluster(env_id, NEVER, seed, run_dir,
                                ["--train-for-seconds", str(budget_s), *extra], log, budget_s + 600,
                                env={"TPDEB_KEEP_CHECKPOINTS": "1000",
@@ -127,7 +129,7 @@ def run_budgeted(env_id: str, seed: int, budget_s: float, extra: list[str], run_
     return {"env_id": env_id, "seed": seed, "budget_s": budget_s, "train_s":
             end["train_elapsed_s"], "wall_s": round(wall_s, 1), "steps": end["global_step"],
             "episodes": on_the_clock(read_run_metrics(run_dir)), "marks": marks,
-            "code": code_version()}
+            "code": provenance.short(record), "provenance": record}
 
 
 def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
@@ -158,6 +160,7 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
           f"{args.minutes:g} min …", flush=True)
     log = OUT / args.tag / system / f"{env_id}__{seed}.log"
     log.parent.mkdir(parents=True, exist_ok=True)
+    record = provenance.start()
     with log.open("w") as out:
         code = subprocess.run(cmd, cwd=ROOT, stdout=out, stderr=subprocess.STDOUT).returncode
     peer = path.with_suffix(".peer")
@@ -166,7 +169,7 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
         return None
     result = json.loads(peer.read_text())
     peer.unlink()
-    result["code"] = code_version()
+    result.update(code=provenance.short(record), provenance=record)
     return result
 
 
@@ -182,7 +185,7 @@ def finish(path: Path, result: dict | None, what: str = "race") -> None:
         return
     for mark, at in result["marks"].items():
         at["train_return"] = return_at([tuple(e) for e in result["episodes"]], float(mark))
-    save_json(path, result)
+    save_json(path, provenance.stamp(result, result["provenance"]))
     shown = " | ".join(f"{int(m) / 60:g} min: {at['train_return']:,.0f}"
                        + (f" (eval {at['eval']['mean_return']:,.0f})" if at.get("eval") else "")
                        for m, at in result["marks"].items())

@@ -39,6 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
+import provenance
 
 from tpdeb.tpdeb_core.replay import DualReplay, ppo_per, tpdeb
 
@@ -269,6 +270,7 @@ def main() -> None:
                         help="smoke run: sizes 1e3,1e4, 30 repeats, no reference")
     parser.add_argument("--json", type=Path, help="also write the results here")
     args = parser.parse_args()
+    record = provenance.start()
     if args.quick:
         args.sizes, args.repeats, args.no_reference = "1e3,1e4", 30, True
     sizes = sorted(int(float(size)) for size in args.sizes.split(","))
@@ -300,6 +302,7 @@ def main() -> None:
             "reference": {str(size): times for size, times in reference.items()},
             "ratios": ratios,
         }
+        provenance.stamp(output, record)
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(output, indent=2) + "\n")
         print(f"wrote {args.json}")

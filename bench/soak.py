@@ -20,7 +20,9 @@ warm-up RSS = median of the first minute after warm-up, final RSS = median of th
 drift = final vs warm-up, PASS when |drift| ≤ `--tolerance-pct` (5 %). The gauges are judged
 the same way over five minutes (at most a quarter of the soak after warm-up): they vary by more
 than that from one minute to the next, and the disk is a sawtooth cut at every snapshot.
-`--rejudge RESULT.json` judges a saved soak's series again, measuring nothing. At the end the
+`--rejudge RESULT.json` judges a saved soak's series again by today's rule, measuring nothing,
+and adds that verdict beside the earlier ones (`verdicts`, each with its rule's version; the
+run's own verdict stays in `summary`, `result` and `table_markdown`). At the end the
 cluster gets SIGINT (its graceful stop: checkpoint, snapshot), the script waits for it and
 checks that no process of the run is left. The series goes to `--out` (JSON) and a markdown table is
 printed. Exit status 1 on a FAIL, a restart, an early exit or a process left behind.
@@ -43,6 +45,7 @@ import threading
 import time
 from pathlib import Path
 
+import provenance
 from procfs import SERVICES, cmdline, descendants, proc_table, rss_kib, service_name
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,6 +55,8 @@ WINDOW_S = 60.0  # a service's warm-up and final RSS are medians over one minute
 # grows and is cut at each snapshot), whose one-minute median depends on where the minute falls.
 GAUGE_WINDOW_S = 300.0
 GAUGES = ("replay disk (MiB)", "env steps/s", "update (ms)")  # sampled beside the RSS
+RULE = "bench/soak.py:verdict"
+RULE_VERSION = 2  # 1: every series' references over one minute; 2: a gauge's over five
 PROGRESS = re.compile(r"^\[learner\] tpdeb-learner: \[\s*([\d,]+)/[\d,]+\]")
 
 
@@ -157,21 +162,30 @@ def window_of(name: str, warmup_s: float, end_s: float) -> float:
     return max(WINDOW_S, min(GAUGE_WINDOW_S, (end_s - warmup_s) / 4))
 
 
-def failing(results: dict) -> list[str]:
+def failing(summary: dict) -> list[str]:
     """The series of a judged soak that did not pass."""
-    return [n for n, s in results["summary"].items() if s["result"] != "PASS"]
+    return [n for n, s in summary.items() if s["result"] != "PASS"]
 
 
-def verdict(results: dict) -> None:
-    """Judge every series of `results` (its meta, series, problems and restarts) and set its
-    summary, result and table."""
+def verdict(results: dict) -> dict:
+    """Every series of `results` (its meta, series, problems and restarts) judged by today's
+    rule: the summary per series, the result, the reasons it fails and the table."""
     meta, warmup_s = results["meta"], 60 * results["meta"]["warmup_minutes"]
     end_s, tolerance = meta["soak_s"], meta["tolerance_pct"]
     summary = {n: judge(v, warmup_s, end_s, tolerance, window_of(n, warmup_s, end_s))
                for n, v in results["series"].items()}
-    results["summary"] = summary
-    results.update(result="FAIL" if failing(results) or results["problems"] else "PASS",
-                   table_markdown=render(summary, results["restarts"], tolerance))
+    reasons = [f"{n}: drift {summary[n]['drift_pct']:+.1f} % beyond ±{tolerance:g} %"
+               if "drift_pct" in summary[n] else f"{n}: {summary[n]['why']}"
+               for n in failing(summary)] + list(results["problems"])
+    return {"summary": summary, "result": "FAIL" if reasons else "PASS", "reasons": reasons,
+            "table_markdown": render(summary, results["restarts"], tolerance)}
+
+
+def add_verdict(results: dict, judged: dict, note: str = "") -> dict:
+    return provenance.add_verdict(results, RULE, RULE_VERSION, judged["result"] == "PASS",
+                                  judged["reasons"], note=note,
+                                  details={"summary": judged["summary"],
+                                           "table_markdown": judged["table_markdown"]})
 
 
 def render(summary: dict[str, dict], restarts: dict[str, int], tolerance_pct: float) -> str:
@@ -237,21 +251,29 @@ def figure(results: dict, path: Path) -> None:
 
 
 def rejudge(path: Path, png: Path | None, parser) -> int:
-    """--rejudge: the verdict of a saved soak again, from its series (nothing is measured)."""
+    """--rejudge: the verdict of a saved soak by today's rule, from its series (nothing is
+    measured), added beside the verdicts the file holds unless this rule's version has judged
+    it already; the run's own verdict and every earlier one are kept as they are."""
     try:
         results = json.loads(path.read_text())
-        results["meta"].setdefault("gauge_window_s", GAUGE_WINDOW_S)
-        verdict(results)
+        judged = verdict(results)
         if png is not None:
-            figure(results, png)
+            figure({**results, **judged}, png)
     except (OSError, ValueError, KeyError, TypeError) as exc:
         parser.error(f"--rejudge {path}: not a soak result this script wrote ({exc!r})")
-    path.write_text(json.dumps(results, indent=1))
-    print(results["table_markdown"])
-    failed = f" ({', '.join(failing(results))})" if failing(results) else ""
-    say(f"{results['result']}{failed}; verdict written to {path}"
-        + (f", figure in {png}" if png else ""))
-    return 0 if results["result"] == "PASS" else 1
+    print(judged["table_markdown"])
+    done = [v for v in results.get("verdicts", [])
+            if v["rule"] == RULE and v["rule_version"] == RULE_VERSION]
+    if done:
+        say(f"{done[-1]['verdict']} by rule version {RULE_VERSION}, already in {path}; "
+            "nothing written")
+    else:
+        add_verdict(results, judged, note="judged again from the saved series")
+        path.write_text(json.dumps(results, indent=1))
+        say(f"{judged['result']} by rule version {RULE_VERSION}"
+            + (f" ({'; '.join(judged['reasons'])})" if judged["reasons"] else "")
+            + f"; added to {path}'s verdicts" + (f", figure in {png}" if png else ""))
+    return 0 if judged["result"] == "PASS" else 1
 
 
 def order(name: str) -> tuple:
@@ -315,6 +337,7 @@ def main() -> int:
         p.error(f"--interval-s {args.interval_s:g}: must be > 0 and ≤ {WINDOW_S / 3:g} (at least "
                 "3 samples in each reference minute)")
 
+    record = provenance.start()
     run_dir = Path(tempfile.mkdtemp(prefix="tpdeb-soak-"))
     argv = [*cluster_command(), "--config", args.config, "--total-timesteps",
             str(args.total_timesteps), "--run-dir", str(run_dir), *args.cluster_args]
@@ -399,8 +422,12 @@ def main() -> int:
         "restarts": restarts, "pids": sampler.pids,
         "series": {n: sampler.series[n] for n in names}, "learner_steps": progress,
         "problems": problems}
-    verdict(results)
-    failed, table = failing(results), results["table_markdown"]
+    judged = verdict(results)
+    results.update(summary=judged["summary"], result=judged["result"],
+                   table_markdown=judged["table_markdown"])
+    provenance.stamp(results, record)
+    add_verdict(results, judged)
+    failed, table = failing(judged["summary"]), judged["table_markdown"]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))

@@ -44,6 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import provenance
 import torch
 from procfs import cmdline, descendants, proc_table, rss_kib, service_name
 
@@ -663,6 +664,7 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", default=str(ROOT / "bench" / "out" / "throughput"))
     args = parser.parse_args()
+    record = provenance.start()
     out_dir = Path(args.out)
     out_dir.mkdir(parents=True, exist_ok=True)
     config = preset_config(args.env_id, args.num_envs, args.seed)
@@ -678,13 +680,13 @@ def main() -> None:
     runs = []
     for index in range(1, args.repeat + 1):
         runs.append(measure(args, config, out_dir, index))
-        (out_dir / "results.json").write_text(json.dumps(
-            {"meta": meta, "runs": runs, "figures": [derive(r) for r in runs]}, indent=2))
+        (out_dir / "results.json").write_text(json.dumps(provenance.stamp(
+            {"meta": meta, "runs": runs, "figures": [derive(r) for r in runs]}, record), indent=2))
     meta["loadavg_end"] = os.getloadavg()
     table = render(runs, meta)
-    (out_dir / "results.json").write_text(json.dumps(
+    (out_dir / "results.json").write_text(json.dumps(provenance.stamp(
         {"meta": meta, "runs": runs, "figures": [derive(r) for r in runs],
-         "table_markdown": table}, indent=2))
+         "table_markdown": table}, record), indent=2))
     print()
     print(table)
     print()

@@ -2,6 +2,7 @@
 (bench/runs.py), on made-up rows: nothing here trains."""
 
 import argparse
+import dataclasses
 import json
 import re
 import sys
@@ -167,7 +168,7 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     for name in ablate.studies():
         assert f"## {name}:" in text
     assert "made on commit abc1234" in text
-    assert "Ant-v5: the best ζ is 0.2 (3,012)" in text
+    assert "Ant-v5: the best ζ by mean is 0.2 (3,012)" in text
     assert "Ant-v5: priority=trajectory vs priority=step: 3,012 ± 1 (n=3) against 2,912 ± 1 " \
            "(n=3): higher" in text
     assert "Ant-v5: what each costs: trajectory 15 ms per update, 8.3 min per run (commit " \
@@ -175,7 +176,7 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     assert "Hopper-v5: kl=preset vs kl=off: 3,012 ± 1 (n=3) against 1,012 ± 1 (n=3): higher" in text
     # the workers study's own 2-actor run (2,800), not the comparison grid's preset run (3,000)
     assert "2 actors 2,812 in 8.3 min" in text
-    assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell is N_u=5k,N_p=1k" in text
+    assert "by N_u: 5k 1.00; 1M 0.34" in text and "the best cell by mean is N_u=5k,N_p=1k" in text
     ant = ablate.preset_values("Ant-v5")
     n_u, n_p = ant["uniform_capacity_steps"], ant["prioritized_capacity"]
     assert f"- Ant-v5: the preset's own buffers, N_u {n_u:,} steps and N_p {n_p} fragments " \
@@ -189,7 +190,8 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     # every kl run is present; the made-up curves never fall, so stability is not shown
     assert "**The paper's statement holds in part**:" in kl
     assert "- no — Hopper-v5: kl=preset falls less from its peak than kl=off, which collapses " \
-           "(≥ 20%): 0% ± 0% (n=3) against 0% ± 0% (n=3), within the seed spread" in kl
+           "(≥ 20% beyond the seed spread): 0% ± 0% (n=3) against 0% ± 0% (n=3), within the " \
+           "seed spread" in kl
     # the summary table heads the page and replaces RESULTS' block, leaving the rest alone
     row = "| zeta | Fig 6a, 6b | a best ζ inside the range, at 0.2, above ζ 0 | holds here: 3 " \
           "of 3 parts (provisional: 9 runs missing) |"
@@ -222,25 +224,151 @@ def test_the_verdict_says_whether_each_part_of_the_statement_holds_with_its_numb
     tau = ablate.studies()["tau"]
     papers = {"tau=0.001": (800, 800), "tau=0.005": (1500, 1500), "tau=0.01": (3000, 1500),
               "tau=0.05": (3200, 1000), "tau=0.1": (3300, 900)}
-    text = ablate_report.holds(tau, by_tau(papers))
+    own = {"Ant-v5": by_tau({"tau=0.05": papers["tau=0.05"]})["Ant-v5"][0][1]}  # the preset's
+    text = ablate_report.holds(tau, by_tau(papers), own)
     assert text.startswith("**The paper's statement holds here**:")
-    assert "- yes — τ ≥ 0.01 falls sharply mid-training (≥ 20% below its peak by the end): " \
-           "3 of 3" in text
-    assert "- yes — tau=0.001 stays stable (falls 0%)" in text
+    assert re.search(r"- yes — τ ≥ 0.01 falls sharply mid-training \(≥ 20% below its peak by the "
+                     r"end, beyond the seed spread\): 3 of 3 \(τ 0.01 \d\d% ± \d% \(n=3\)", text)
+    assert "- yes — tau=0.001 stays stable: it falls 0% ± 0% (n=3), below a collapse beyond the " \
+           "seed spread; it reached 812, at least 50% of the preset's 1,012 on Ant-v5" in text
     assert "- yes — tau=0.001 limited: tau=0.005 1,512 ± 1 (n=3) against tau=0.001 812 ± 1 " \
            "(n=3), higher" in text
 
     steady = {k: (v[0], v[0]) for k, v in papers.items()}  # nothing falls
-    text = ablate_report.holds(tau, by_tau(steady))
+    text = ablate_report.holds(tau, by_tau(steady), own)
     assert text.startswith("**The paper's statement holds in part**:")
-    assert "- no — τ ≥ 0.01 falls sharply mid-training (≥ 20% below its peak by the end): " \
-           "0 of 3" in text
+    assert "- no — τ ≥ 0.01 falls sharply mid-training (≥ 20% below its peak by the end, beyond " \
+           "the seed spread): 0 of 3" in text
 
-    one_seed = ablate_report.holds(tau, by_tau(papers, seeds=(11,)))
+    one_seed = ablate_report.holds(tau, by_tau(papers, seeds=(11,)), own)
     assert one_seed.startswith("**No verdict yet on the paper's statement** (a part rests on "
                                "one seed) (provisional: 10 runs still missing):")
-    assert "- one seed — tau=0.001 limited" in one_seed
+    assert "- not judged — tau=0.001 limited: tau=0.005 1,511 (n=1) against tau=0.001 811 " \
+           "(n=1), not judged: one seed, no spread" in one_seed
+    assert "- not judged — τ ≥ 0.01 falls sharply" in one_seed
     assert ablate_report.holds(tau, {"Ant-v5": [("tau=0.05", [])]}) == ""
+
+
+def test_a_smallest_tau_that_barely_learns_is_not_called_stable():
+    """Flat at 100 against the preset's 3,000: nothing to fall from, so no stability shown."""
+    import ablate_report
+
+    tau = ablate.studies()["tau"]
+    levels = {"tau=0.001": (100, 100), "tau=0.05": (3000, 3000)}
+    own = {"Ant-v5": by_tau({"tau=0.05": levels["tau=0.05"]})["Ant-v5"][0][1]}
+    text = ablate_report.holds(tau, by_tau(levels), own)
+    assert "- no — tau=0.001 stays stable: it falls 0% ± 0% (n=3), below a collapse beyond the " \
+           "seed spread; it reached 112, under 50% of the preset's 3,012 on Ant-v5: too little " \
+           "learning to call stable" in text
+    # without the preset's own runs that it learned is not shown: not stable either
+    assert "- no — tau=0.001 stays stable: it falls 0% ± 0% (n=3), below a collapse beyond the " \
+           "seed spread; the preset's own runs on Ant-v5 are missing" in ablate_report.holds(
+               tau, by_tau(levels))
+
+
+def test_a_fall_is_a_collapse_only_beyond_the_seed_spread():
+    """Falls of 0 %, 40 % and 50 % average 30 %, above the 20 % line by direction, within it by
+    their spread: a τ ≥ 0.01 with such seeds does not count as falling sharply."""
+    import ablate_report
+
+    tau = ablate.studies()["tau"]
+    noisy = {"Ant-v5": [("tau=0.001", [rise_and_fall(800, 800, s) for s in (11, 12, 13)])] + [
+        (label, [rise_and_fall(3000, 3000 * (1 - f), s) for f, s in
+                 zip((0.0, 0.4, 0.5), (11, 12, 13), strict=True)])
+        for label in ("tau=0.01", "tau=0.05", "tau=0.1")]}
+    text = ablate_report.holds(tau, noisy)
+    assert re.search(r"- no — τ ≥ 0.01 falls sharply mid-training \(≥ 20% below its peak by the "
+                     r"end, beyond the seed spread\): 0 of 3 \(τ 0.01 [23]\d% ± [12]\d% \(n=3\)",
+                     text)
+    assert ablate_report.collapsed([0.3, 0.32, 0.34]) == 1
+    assert ablate_report.collapsed([0.0, 0.4, 0.5]) == 0
+    assert ablate_report.collapsed([0.0, 0.01, 0.02]) == -1
+    assert ablate_report.collapsed([0.9]) is None
+
+
+def flat(levels: dict[str, list[float]]) -> dict:
+    """Ant-v5 runs whose curves stay at each seed's level, by label."""
+    return {"Ant-v5": [(label, [{"final_return": v, "seed": s,
+                                 "curve": [[st, v] for st in range(0, 1_000_001, 10_000)],
+                                 "clock": [[st, st / 2000] for st in range(0, 1_000_001, 10_000)]}
+                                for v, s in zip(values, (11, 12, 13), strict=False)])
+                       for label, values in levels.items()]}
+
+
+def test_zeta_02_passes_only_above_every_other_zeta_beyond_the_spread():
+    import ablate_report
+
+    zeta = ablate.studies()["zeta"]
+    clear = {"zeta=0": [1000, 1100, 900], "zeta=0.2": [3000, 3100, 2900],
+             "zeta=0.4": [2000, 2100, 1900], "zeta=1": [500, 600, 400]}
+    text = ablate_report.holds(zeta, flat(clear))
+    assert text.startswith("**The paper's statement holds here**:")
+    # ζ 0.4 level with ζ 0.2 within the spread: the old "level with the best" passed this
+    level = {**clear, "zeta=0.4": [3100, 3600, 2600]}
+    text = ablate_report.holds(zeta, flat(level))
+    assert "- no — ζ 0.2 the best, above every other ζ beyond the seed spread: zeta=0.2 3,000 ± " \
+           "100 (n=3) against zeta=0 1,000 ± 100 (n=3) (higher), zeta=0.4 3,100 ± 500 (n=3) " \
+           "(within the seed spread), zeta=1 500 ± 100 (n=3) (higher)" in text
+    # the highest mean inside the range but within the spread of an end: no peak shown
+    edge = {**clear, "zeta=1": [2000, 3500, 3200]}
+    text = ablate_report.holds(zeta, flat(edge))
+    assert "- no — a peak inside the range, above both ends beyond the seed spread: zeta=0.2 " \
+           "3,000 ± 100 (n=3) against zeta=0 1,000 ± 100 (n=3) (higher), zeta=1 2,900 ± 794 " \
+           "(n=3) (within the seed spread)" in text
+    one = ablate_report.holds(zeta, flat({k: v[:1] for k, v in clear.items()}))
+    assert "- yes —" not in one and "- no —" not in one and one.count("- not judged —") == 3
+
+
+def test_the_buffers_parts_need_a_seed_spread():
+    import ablate_report
+
+    buffers = ablate.studies()["buffers"]
+    # one seed per cell: the direction fits the paper's statement, and still nothing is judged
+    one = {"N_u=5k,N_p=1k": [2000], "N_u=5k,N_p=80k": [1000],
+           "N_u=1M,N_p=1k": [3000], "N_u=1M,N_p=80k": [2000]}
+    text = ablate_report.holds(buffers, flat(one))
+    assert text.startswith("**No verdict yet on the paper's statement** (a part rests on one "
+                           "seed)")
+    assert "- yes —" not in text and "- no —" not in text
+    assert "- not judged — a larger uniform buffer does better: N_u 5k 0.50 → 1M 0.83 " \
+           "(normalised to the best cell; one seed per cell: no spread, the direction " \
+           "alone)" in text
+    # two seeds: the direction holds, but the largest N_p is within the spread of the smaller
+    two = dataclasses.replace(buffers, seeds=(11, 12))
+    noisy = {"N_u=5k,N_p=1k": [2000, 2600], "N_u=5k,N_p=80k": [1900, 2000],
+             "N_u=1M,N_p=1k": [3000, 3400], "N_u=1M,N_p=80k": [2900, 3100]}
+    text = ablate_report.holds(two, flat(noisy))
+    assert text.startswith("**The paper's statement holds in part**:")
+    assert "- yes — a larger uniform buffer does better: N_u 1M 3,100 ± 212 (n=2) against N_u " \
+           "5k 2,125 ± 247 (n=2), higher" in text
+    assert "- no — the largest prioritised buffer does worse than a smaller one: N_p 1k 2,750 ± " \
+           "354 (n=2) against N_p 80k 2,475 ± 106 (n=2), within the seed spread" in text
+    steady = {**noisy, "N_u=5k,N_p=80k": [1000, 1100], "N_u=1M,N_p=80k": [2000, 2100]}
+    assert "- yes — the largest prioritised buffer does worse" in ablate_report.holds(
+        two, flat(steady))
+
+
+def test_gains_diminish_only_beyond_the_seed_spread():
+    import ablate_report
+
+    workers = ablate.studies()["workers"]
+    clear = {"actors=1": [1000, 1010, 990], "actors=2": [2000, 2010, 1990],
+             "actors=4": [2500, 2510, 2490], "actors=8": [2600, 2610, 2590]}
+    text = ablate_report.holds(workers, flat(clear))
+    assert text.startswith("**The paper's statement holds here**:")
+    assert re.search(r"- yes — the gains diminish: .* add \+1,000 ± \d+, \+500 ± \d+, \+100 ± \d+; "
+                     r"the first is a gain beyond the seed spread, and exceeds the last by \+900 "
+                     r"against their combined spread of \d+ \(higher\)", text)
+    # the same means with seeds 600 apart: smaller gains by direction, nothing beyond the spread
+    noisy = {k: [v[0], v[0] + 600, v[0] - 600] for k, v in clear.items()}
+    text = ablate_report.holds(workers, flat(noisy))
+    assert re.search(r"- no — the gains diminish: .*; the first is a gain beyond the seed spread, "
+                     r"and exceeds the last by \+900 against their combined spread of 1,200 "
+                     r"\(within the seed spread\)", text)
+    # shrinking "gains" that are losses are no diminishing gains
+    losses = {"actors=1": [3000, 3010, 2990], "actors=2": [2000, 2010, 1990],
+              "actors=4": [500, 510, 490]}
+    assert "- no — the gains diminish" in ablate_report.holds(workers, flat(losses))
 
 
 def test_kl_stability_counts_a_fall_only_beyond_the_seed_spread():
@@ -257,19 +385,25 @@ def test_kl_stability_counts_a_fall_only_beyond_the_seed_spread():
                                          "kl=off": [0.3, 0.35, 0.4]}))
     # each seed's curve is smoothed as plotted, which softens its last 200k steps' fall
     assert re.search(r"- yes — Ant-v5: kl=preset falls less from its peak than kl=off, which "
-                     r"collapses \(≥ 20%\): \d% ± \d% \(n=3\) against 2\d% ± \d% \(n=3\), "
-                     r"less$", text, re.M)
+                     r"collapses \(≥ 20% beyond the seed spread\): \d% ± \d% \(n=3\) against "
+                     r"2\d% ± \d% \(n=3\), less$", text, re.M)
     # a point or two of difference with a spread as large is noise, not stability
     text = ablate_report.holds(kl, by_fall({"kl=preset": [0.0, 0.01, 0.02],
                                          "kl=off": [0.0, 0.02, 0.04]}))
     assert re.search(r"- no — Ant-v5: kl=preset falls less from its peak than kl=off, which "
-                     r"collapses \(≥ 20%\): \d% ± \d% \(n=3\) against \d% ± \d% \(n=3\), "
-                     r"within the seed spread$", text, re.M)
+                     r"collapses \(≥ 20% beyond the seed spread\): \d% ± \d% \(n=3\) against "
+                     r"\d% ± \d% \(n=3\), within the seed spread$", text, re.M)
     # beyond the spread, but the other never collapses: nothing was there to stabilise
     text = ablate_report.holds(kl, by_fall({"kl=preset": [0.0, 0.0, 0.0],
                                          "kl=off": [0.08, 0.09, 0.1]}))
-    assert re.search(r"- no — Ant-v5: .* against \d% ± \d% \(n=3\), less, but kl=off falls "
-                     r"less than 20%$", text, re.M)
+    assert re.search(r"- no — Ant-v5: .* against \d% ± \d% \(n=3\), less, but kl=off's fall "
+                     r"is not a collapse beyond the seed spread$", text, re.M)
+    # a mean fall above 20 % by direction, but seeds from 5 % to 50 %: no collapse beyond the
+    # spread, so nothing shown to be stabilised (the old rule read the mean alone)
+    text = ablate_report.holds(kl, by_fall({"kl=preset": [0.0, 0.0, 0.0],
+                                         "kl=off": [0.05, 0.3, 0.5]}))
+    assert re.search(r"- no — Ant-v5: .* against [23]\d% ± [12]\d% \(n=3\), less, but kl=off's "
+                     r"fall is not a collapse beyond the seed spread$", text, re.M)
 
 
 def test_the_buffers_verdict_says_how_stale_each_axis_samples():

@@ -80,3 +80,51 @@ def test_the_audit_finds_lost_and_duplicated_fragments():
     assert chaos.audit(acked, ledgers, inserted=8, logged=[])["duplicated"] == 1
     # a logged record the snapshot already holds would go in again on restore
     assert chaos.audit(acked, ledgers, 7, [(1, 4, 0)])["duplicated"] == 1
+
+
+def a_run(**change) -> dict:
+    """A chaos result that passes: every fault recovered quickly, nothing lost, a clear rise."""
+    result = {"exit_code": 0, "versions_monotone": True,
+              "audit": {"lost": 0, "duplicated": 0},
+              "faults": [{"kind": "kill", "target": "replay", "at_s": 100.0, "end_s": 100.0,
+                          "recovery_s": 0.7},
+                         {"kind": "hang", "target": "actor-0", "at_s": 130.0, "end_s": 140.0,
+                          "recovery_s": 1.2}],
+              "return": {"first": 1000.0, "last": 5000.0, "first_std": 300.0,
+                         "last_std": 400.0, "learned": True}}
+    result.update(change)
+    return result
+
+
+def test_the_rule_passes_a_clean_run():
+    assert chaos.judge(a_run()) == []
+
+
+def test_a_fault_recovered_too_slowly_never_or_not_injected_fails_the_run():
+    slow = a_run()
+    slow["faults"][0]["recovery_s"] = chaos.RECOVERY_LIMIT_S + 14.2
+    assert chaos.judge(slow) == ["kill replay at 100 s: recovered in 24.2 s > 10 s"]
+    never = a_run()
+    never["faults"][1]["recovery_s"] = None
+    assert chaos.judge(never) == ["hang actor-0 at 130 s: never recovered"]
+    skipped = a_run()
+    skipped["faults"][1] = {"kind": "kill", "target": "learner", "at_s": 130.0,
+                            "end_s": 130.0, "skipped": "not running"}
+    assert chaos.judge(skipped) == ["kill learner at 130 s: not injected (not running)"]
+
+
+def test_a_rise_within_the_spread_of_the_episodes_is_not_learning():
+    rows = [(s, 1000.0 + (300 if s % 2 else -300)) for s in range(0, 100)]  # first 10 %
+    rows += [(s, 1200.0 + (300 if s % 2 else -300)) for s in range(900, 1001)]  # last 10 %
+    learned = chaos.returns_of(rows)
+    assert learned["last"] > learned["first"] and learned["learned"] is False
+    assert "did not rise" in chaos.judge(a_run(**{"return": learned}))[0]
+    rows = [(s, r + (4000 if s >= 900 else 0)) for s, r in rows]
+    assert chaos.returns_of(rows)["learned"] is True
+
+
+def test_loss_duplicates_a_failed_exit_and_a_version_going_back_each_fail():
+    assert chaos.judge(a_run(exit_code=1)) == ["the run exited with 1"]
+    assert chaos.judge(a_run(audit={"lost": 2, "duplicated": 0})) == [
+        "2 acknowledged fragments lost, 0 duplicated"]
+    assert chaos.judge(a_run(versions_monotone=False)) == ["a parameter version went back"]

@@ -34,6 +34,30 @@ def test_compare_needs_a_gap_beyond_the_seed_spread():
     assert paper_report.compare([10], [1]) is None  # one seed shows no spread: no verdict
 
 
+def test_a_mean_is_above_a_bar_only_beyond_its_seed_spread():
+    assert paper_report.against_bar([0.3, 0.32, 0.34], 0.2) == 1
+    assert paper_report.against_bar([0.0, 0.4, 0.5], 0.2) == 0  # 30 % by its mean alone
+    assert paper_report.against_bar([0.0, 0.01, 0.02], 0.2) == -1
+    assert paper_report.against_bar([0.9], 0.2) is None
+
+
+def test_a_trend_grows_only_beyond_the_combined_spread_of_its_ends():
+    # the thin-link case: a lead of +982 → +1,589 with the baseline's std at 2,028
+    wide = paper_report.difference([5000, 5900, 6900], [3800, 4900, 6150])
+    thin = paper_report.difference([4900, 5700, 6250], [1800, 4500, 5800])
+    result, spread = paper_report.grows(thin, wide)
+    assert result == 0 and spread > thin[0] - wide[0] > 0
+    assert paper_report.grows(wide, thin)[0] == 0
+    tight_wide = paper_report.difference([5000, 5010, 4990], [4000, 4010, 3990])
+    tight_thin = paper_report.difference([5000, 5010, 4990], [2000, 2010, 1990])
+    assert paper_report.grows(tight_thin, tight_wide)[0] == 1
+    assert paper_report.grows(tight_wide, tight_thin)[0] == -1
+    one = paper_report.difference([5000], [1000])
+    assert one == (4000, None) and paper_report.grows(one, tight_wide) == (None, None)
+    assert paper_report.gap_cell(tight_wide) == "+1,000 ± 14"
+    assert paper_report.gap_cell(one) == "+4,000"
+
+
 def test_claims_count_wins_and_losses_per_task():
     results = grid({
         ("Ant-v5", "tpdeb"): 3000, ("Ant-v5", "impact"): 1000, ("Ant-v5", "ppo-per"): 500,
@@ -58,7 +82,7 @@ def test_one_seed_per_cell_gives_numbers_but_no_verdict():
     results = grid({("Ant-v5", a): 1000 for a in paper_report.NAMES}, seeds=(11,))
     text = paper_report.claims(results, ["Ant-v5"])
     assert text.count("no verdict yet") == 3 and "holds here" not in text
-    assert "IMPACT 1,011 (one seed)" in text
+    assert "IMPACT 1,011 (not judged: one seed, no spread)" in text
 
 
 def test_tasks_without_all_their_runs_are_left_out():

@@ -25,6 +25,7 @@ import time
 
 import pytest
 
+from tests.figures import keep_figures
 from tests.netns import Namespaces, run, unavailable
 from tests.procs import ROOT
 
@@ -208,3 +209,15 @@ def test_training_recovers_from_a_network_partition(spaces, tmp_path, cut):
     assert watcher.poll() is None, spaces.output(watcher)
     done = [line for line in spaces.output(learner).splitlines() if "done at" in line]
     assert done, f"the learner did not reach its total:\n{spaces.output(learner)[-2000:]}"
+
+    def since(event, start: float) -> float | None:
+        return round(event["t"] - start, 2) if event else None
+
+    keep_figures(f"partition-{cut}", {
+        "cut": cut, "partition_s": round(partition_s, 2), "frozen_step": frozen_step,
+        "token_dropped_after_cut_s": since(lost, cut_at),
+        "from_link_return_s": {"actor_token_back": since(reconnect, restored_at),
+                               "first_fragment_at_replay": since(arrival, restored_at),
+                               "new_acks_at_actor": since(ack, restored_at),
+                               "learner_advancing": since(progress, restored_at)},
+        "stats_interval_s": 1.0})

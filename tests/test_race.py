@@ -69,15 +69,28 @@ def test_the_report_compares_returns_at_the_end_and_the_time_to_reach_them():
                   900.0)]
     table = race_report.budget_table(ours + theirs, ["Hopper-v5"])
     assert "3,412 ± 1 (n=2)" in table and "880 (n=1)" in table and "± 0 (n=1)" not in table
-    assert "2,310 (CleanRL)" in table and "| 1.48 (training) | 2 of 2 |" in table
+    assert "2,310 (CleanRL)" in table and "| 1.48 (training) | 2 of 2 | met |" in table
     # the zoo's SAC figure is an evaluation return: TPDEB's evaluation is set against it
     ant = race_report.budget_table([run("tpdeb", "Ant-v5", 11, [(1, 0, 1.0)], 2308.0, 6924.0)],
                                    ["Ant-v5"])
-    assert "4,616 (zoo) | 1.50 (evaluation) |" in ant
+    assert "4,616 (zoo) | 1.50 (evaluation) | 1 of 1 | not judged (one seed) |" in ant
     reach = race_report.reach_table(ours + theirs, ["Hopper-v5"])
     # TPDEB's smoothed curve (a 20-episode trailing mean of 4·t) passes 880 near 230 s; SAC's
     # (of t) never reaches 3,412 in 15 minutes
     assert "| SB3 SAC (zoo) | 880 | 3.8 min | 3,412 | not in 15 min |" in reach
+
+
+def test_the_goal_is_judged_on_the_median_and_the_peers_are_not_judged():
+    # one seed far above SAC's 2,310 lifts the mean (4,000) over it; the median (1,000) is not
+    lucky = [run("tpdeb", "Hopper-v5", s, [(1, 0, 1.0)], v, v)
+             for s, v in zip((11, 12, 13), (10_000.0, 1_000.0, 1_000.0), strict=True)]
+    peer = [run("sb3-sac", "Hopper-v5", 11, [(1, 0, 1.0)], 9_000.0, 9_000.0)]
+    table = race_report.budget_table(lucky + peer, ["Hopper-v5"])
+    assert "| 2,310 (CleanRL) | 0.43 (training) | 1 of 3 | not met |" in table
+    assert race_report.goal([2400.0, 2500.0, 1000.0], 2310) == "met"
+    assert race_report.goal([10_000.0, 1000.0, 1000.0], 2310) == "not met"
+    assert race_report.goal([9_000.0], 2310) == "not judged (one seed)"
+    assert race_report.goal([], 2310) == "—"
 
 
 def test_the_tuning_table_lists_every_run_at_its_marks_preset_first(tmp_path):

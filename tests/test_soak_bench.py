@@ -1,6 +1,7 @@
 """The soak's verdict (bench/soak.py): a series is judged by the median of the minute after
 warm-up against the median of the last minute; made-up series, nothing timed."""
 
+import json
 import sys
 from pathlib import Path
 
@@ -37,7 +38,36 @@ def test_a_gauge_is_judged_over_minutes_enough_to_hold_its_sawtooth():
     results = {"meta": {"warmup_minutes": 2.0, "soak_s": 3600.0, "tolerance_pct": 5.0},
                "series": {"replay disk (MiB)": tooth, "replay": series([90.0] * 60)},
                "problems": [], "restarts": {}}
-    soak.verdict(results)
-    assert results["summary"]["replay disk (MiB)"]["window_s"] == 300.0
-    assert results["summary"]["replay"]["window_s"] == 60.0
-    assert results["result"] == "PASS", results["table_markdown"]
+    judged = soak.verdict(results)
+    assert judged["summary"]["replay disk (MiB)"]["window_s"] == 300.0
+    assert judged["summary"]["replay"]["window_s"] == 60.0
+    assert judged["result"] == "PASS", judged["table_markdown"]
+
+
+def test_a_failing_series_or_a_problem_fails_the_verdict_with_its_reason():
+    results = {"meta": {"warmup_minutes": 2.0, "soak_s": 3600.0, "tolerance_pct": 5.0},
+               "series": {"replay": series([90.0] * 30 + [99.0] * 30)},
+               "problems": [], "restarts": {}}
+    judged = soak.verdict(results)
+    assert judged["result"] == "FAIL" and judged["reasons"] == [
+        "replay: drift +10.0 % beyond ±5 %"]
+    results["series"]["replay"] = series([90.0] * 60)
+    results["problems"] = ["services restarted during the soak: {'actor-0': 1}"]
+    assert soak.verdict(results)["reasons"] == results["problems"]
+
+
+def test_rejudging_adds_a_verdict_beside_the_first_and_never_rewrites_it(tmp_path, capsys):
+    results = {"meta": {"warmup_minutes": 2.0, "soak_s": 3600.0, "tolerance_pct": 5.0},
+               "series": {"replay": series([90.0] * 60)}, "problems": [], "restarts": {},
+               "summary": {}, "result": "FAIL", "table_markdown": "as the run judged it",
+               "verdicts": [{"rule": soak.RULE, "rule_version": 1, "verdict": "FAIL",
+                             "reasons": ["a rule of old"]}]}
+    path = tmp_path / "soak.json"
+    path.write_text(json.dumps(results))
+    assert soak.rejudge(path, None, None) == 0
+    after = json.loads(path.read_text())
+    assert [(v["rule_version"], v["verdict"]) for v in after["verdicts"]] == [
+        (1, "FAIL"), (soak.RULE_VERSION, "PASS")]
+    assert after["result"] == "FAIL" and after["table_markdown"] == "as the run judged it"
+    assert soak.rejudge(path, None, None) == 0  # the same rule again: nothing added
+    assert len(json.loads(path.read_text())["verdicts"]) == 2

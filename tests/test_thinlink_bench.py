@@ -47,7 +47,7 @@ def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch):
     def fake_run(env_id, seed, budget_s, flags, run_dir, log, episodes, what):
         calls.append(flags)
         return {"episodes": [(1.0, 100, 5.0)], "marks": {"60": {"eval": None}}, "steps": 100,
-                "budget_s": budget_s}
+                "budget_s": budget_s, "provenance": {"status": "recorded"}}  # as the real one
 
     monkeypatch.setattr(bandwidth, "run_budgeted", fake_run)
     monkeypatch.setattr(bandwidth, "read_run_metrics", lambda run_dir: [
@@ -97,8 +97,8 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
     assert "\nold\n" not in text and text.endswith("after\n")
     assert "unlimited: TPDEB 5,012 ± 1 (n=3) against IMPACT 5,002 ± 1 (n=3): higher" in text
     assert "64 kB/s: TPDEB 3,012 ± 1 (n=3) against IMPACT 1,012 ± 1 (n=3): higher" in text
-    assert "TPDEB's lead over IMPACT grows as the link thins: +10 at unlimited, +2,000 at " \
-           "64 kB/s" in text
+    assert "TPDEB's lead over IMPACT grows as the link thins: +10 ± 1 at unlimited, +2,000 ± 1 " \
+           "at 64 kB/s; the change +1,990 against a combined spread of 2" in text
     assert "64 kB/s: TPDEB with the band 4,012 ± 1 (n=3) against the fixed ratio 3,012 ± 1 " \
            "(n=3): higher (replay ratio 64.0 against 16.0, learner waiting 15% against 75%, " \
            "sample age (updates) 1,200 against 400, parameter lag 2 against 2)" in text
@@ -107,8 +107,9 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
     assert "**The paper's statement holds here** (provisional: 24 runs still missing):" in text
     assert "- yes — TPDEB above IMPACT at 64 kB/s: TPDEB 3,012 ± 1 (n=3) against IMPACT " \
            "1,012 ± 1 (n=3), higher" in text
-    assert "- yes — TPDEB's lead over IMPACT larger at 64 kB/s than at unlimited: +2,000 " \
-           "against +10" in text
+    assert "- yes — TPDEB's lead over IMPACT larger at 64 kB/s than at unlimited beyond the seed " \
+           "spread: +10 ± 1 at unlimited, +2,000 ± 1 at 64 kB/s; the change +1,990 against a " \
+           "combined spread of 2: grows" in text
     assert (tmp_path / "img" / "HalfCheetah-v5.png").is_file()
     results = (tmp_path / "RESULTS.md").read_text()
     assert results.startswith(f"# R\n\n{begin}\n**HalfCheetah-v5, 10 minutes of training behind "
@@ -117,8 +118,8 @@ def test_the_report_compares_per_link_and_reads_the_trend(tmp_path, monkeypatch)
                               "provisional: 24 of the grid's runs still missing. At 64 kB/s TPDEB "
                               "reaches 3,012 ± 1 (n=3): 2.98× IMPACT's 1,012 ± 1 (n=3) "
                               "(higher). TPDEB's lead, unlimited → 64 kB/s: over IMPACT +10 → "
-                              "+2,000. With the replay-ratio band, TPDEB at 64 kB/s: 4,012 ± 1 "
-                              "(n=3) against 3,012 ± 1 (n=3) (higher).")
+                              "+2,000 (grows). With the replay-ratio band, TPDEB at 64 kB/s: "
+                              "4,012 ± 1 (n=3) against 3,012 ± 1 (n=3) (higher).")
     assert results.endswith(f"{end}\nmore\n")
 
 
@@ -135,7 +136,9 @@ def test_the_headline_gives_no_verdict_on_one_seed_and_says_so_on_too_few_links(
     text = bandwidth_report.headline(runs, "HalfCheetah-v5")
     assert "1 seed** — the paper's claim" in text
     assert "bandwidth\") no verdict yet (a part rests on one seed), provisional: 32 of" in text
-    assert "TPDEB reaches 3,011 (n=1): 3.31× IMPACT's 911 (n=1) (one seed)" in text
+    assert "TPDEB reaches 3,011 (n=1): 3.31× IMPACT's 911 (n=1) (not judged: one seed, no " \
+           "spread)" in text
+    assert "over IMPACT +1,000 → +2,100 (not judged: one seed, no spread)" in text
     assert bandwidth_report.headline(runs[:1], "HalfCheetah-v5") == (
         "HalfCheetah-v5: too few thin-link runs for a verdict yet.")
 
@@ -146,3 +149,36 @@ def test_the_headline_gives_no_ratio_to_a_return_at_or_below_zero():
                                         ("tpdeb", 65536, 3000), ("ppo-per", 65536, -100))]
     text = bandwidth_report.headline(runs, "HalfCheetah-v5")
     assert "TPDEB reaches 3,012 ± 1 (n=2): PPO+PER's -88 ± 1 (n=2) (higher)" in text
+
+
+def by_seed(system: str, link: float, values: list[float]) -> list[dict]:
+    """Runs whose training returns at the end are `values`, one per seed."""
+    return [made_up(system, link, seed, value - seed)
+            for seed, value in zip((11, 12, 13), values, strict=False)]
+
+
+def test_a_lead_grows_only_beyond_the_combined_seed_spread():
+    """The issue's case: a lead of +983 at the widest link and +1,583 at the thinnest, with the
+    baseline's seeds 2,000 apart, grows by its two ends alone and not beyond their spread."""
+    runs = (by_seed("tpdeb", 0, [5000, 5900, 6900]) + by_seed("impact", 0, [3800, 4900, 6150])
+            + by_seed("tpdeb", 65536, [4900, 5700, 6250])
+            + by_seed("impact", 65536, [1800, 4500, 5800]))
+    lines = bandwidth_report.verdict(runs, "HalfCheetah-v5")
+    assert "TPDEB's lead over IMPACT neither grows nor shrinks beyond the seed spread as the " \
+           "link thins: +983 ± 1,512 at unlimited, +1,583 ± 2,150 at 64 kB/s; the change +600 " \
+           "against a combined spread of 2,629" in lines
+    parts, _ = bandwidth_report.claim_parts(runs, "HalfCheetah-v5")
+    trend = [(text, ok) for text, ok in parts if "larger at" in text]
+    assert trend == [("TPDEB's lead over IMPACT larger at 64 kB/s than at unlimited beyond the "
+                      "seed spread: +983 ± 1,512 at unlimited, +1,583 ± 2,150 at 64 kB/s; the "
+                      "change +600 against a combined spread of 2,629: within the seed spread",
+                      False)]
+    assert "+983 → +1,583 (within the seed spread)" in bandwidth_report.headline(
+        runs, "HalfCheetah-v5")
+    # one seed a side: no spread, so the trend is not judged however large it looks
+    one = [r for r in runs if r["seed"] == 11]
+    assert "TPDEB's lead over IMPACT is not judged (one seed, no spread) as the link thins: " \
+           "+1,200 at unlimited, +3,100 at 64 kB/s" in bandwidth_report.verdict(
+               one, "HalfCheetah-v5")
+    assert [ok for text, ok in bandwidth_report.claim_parts(one, "HalfCheetah-v5")[0]
+            if "larger at" in text] == [None]
