@@ -332,7 +332,10 @@ class ReplayServer:
         priority = initial_priority(fragment, spec.priority_mode, spec.priority_kappa, spec.gamma)
         # The decoded fragment is the item: it goes back out in sample replies as it came in.
         self.replay.insert(fragment, priority, fragment.num_steps)
-        self.limiter.on_insert(fragment.num_steps)
+        if replaying:  # its samples were not logged: counted as the ratio let them be taken
+            self.limiter.on_restored_insert(fragment.num_steps)
+        else:
+            self.limiter.on_insert(fragment.num_steps)
         self.inserted_steps += fragment.num_steps
         ledger = self.ledgers[fragment.actor_id]
         ledger.ingested += 1

@@ -150,6 +150,46 @@ def test_state_round_trip_and_bad_state():
         b.load_state_dict({"inserted_steps": 0, "sampled_steps": -1})
 
 
+def test_inserts_restored_without_their_samples_leave_diff_where_it_stood():
+    """A replay restart re-inserts what it logged after its snapshot; the samples taken against
+    those went unrecorded. Counted as plain inserts they would put diff far above max_diff and
+    hold every new insert back until the learner had sampled them all again (24-40 s of
+    stalled actors after a replay kill 50 s past its snapshot)."""
+    live = make(spi=16.0, insert_steps=64, sample_steps=512)
+    for _ in range(200):  # the run until the kill: each side acts whenever it may
+        if live.can_insert(64):
+            live.on_insert(64)
+        while live.can_sample(512):
+            live.on_sample(512)
+    saved = live.state_dict()
+    for _ in range(50):  # after the snapshot: logged inserts, unlogged samples
+        live.on_insert(64)
+        while live.can_sample(512):
+            live.on_sample(512)
+    restored = make(spi=16.0, insert_steps=64, sample_steps=512)
+    restored.load_state_dict(saved)
+    for _ in range(50):
+        restored.on_restored_insert(64)
+    assert restored.stats()["inserted_steps"] == live.stats()["inserted_steps"]
+    assert restored.stats()["diff"] == 16.0 * saved["inserted_steps"] - saved["sampled_steps"]
+    assert restored.can_insert(64)
+    counted_alone = make(spi=16.0, insert_steps=64, sample_steps=512)
+    counted_alone.load_state_dict(saved)
+    for _ in range(50):
+        counted_alone.on_insert(64)
+    assert not counted_alone.can_insert(64)  # what the restart did before
+
+
+def test_inserts_restored_from_nothing_owe_no_samples_before_min_size():
+    """A log replayed without any snapshot: the learner sampled nothing before min_size steps
+    were in, and kept diff near spi · min_size after: both sides may act at once."""
+    limiter = make(spi=4.0, min_size=256, insert_steps=64, sample_steps=512)
+    for _ in range(20):
+        limiter.on_restored_insert(64)
+    assert limiter.stats()["diff"] == 4.0 * 256
+    assert limiter.can_insert(64) and limiter.can_sample(512)
+
+
 @pytest.mark.parametrize("upper", [2.0, float("nan"), float("inf"), "x"])
 def test_band_refuses_an_upper_end_below_the_ratio_or_not_finite(upper):
     with pytest.raises(ValueError, match="max_samples_per_insert"):

@@ -277,3 +277,49 @@ def test_a_resend_from_an_actor_restarted_many_times_ago_is_still_recognised(rep
     ledger = server.ledgers[3]
     assert ledger.duplicates == 1  # stored once
     assert ledger.ingested + len(ledger.pending) == 10 and 0 in ledger.windows[1]
+
+
+def test_a_replay_restored_from_an_old_snapshot_takes_in_and_acknowledges_at_once(tmp_path):
+    """Killed long after its last snapshot, the replay re-inserts the fragments logged since,
+    but the samples taken against them were never logged. Counted as plain inserts they held
+    every new fragment back (unacknowledged, the actors stalled) until the learner had sampled
+    them all again: 24 s in a chaos run, 36-42 s behind a replay kill 50 s after a snapshot."""
+    config = ReplayServiceConfig(
+        run_id=RUN, connect=("tcp/127.0.0.1:1",), env_id="Hopper-v5", fragment_len=T,
+        batch_fragments=2, learning_starts_fragments=2, prioritized_capacity=4,
+        uniform_capacity_steps=16 * T, replay_ratio=1.0, sample_wait_s=0.05, persist=False)
+    spec = run_spec(config, OBS_DIM, ACT_DIM, -np.ones(ACT_DIM), np.ones(ACT_DIM))
+
+    def start() -> tuple[ReplayServer, MemoryBus]:
+        bus = MemoryBus()
+        bus.heard = []
+        bus.session().declare_subscriber(Keys(RUN).ack_all, bus.heard.append)
+        server = ReplayServer(config, spec, bus.session(), StopSignal())
+        server.enable_persistence(tmp_path / "replay")
+        return server, bus
+
+    server, bus = start()
+    for seed in (0, 1):
+        send(bus, make_traj(seed=seed))
+    server.poll(0.0)
+    server.snapshot(wait=True)
+    for seed in range(2, 12, 2):  # logged after the snapshot, sampled at the ratio
+        send(bus, make_traj(seed=seed))
+        send(bus, make_traj(seed=seed + 1))
+        server.poll(0.0)
+        (reply,) = ask_for_a_batch(bus, server)
+        assert reply.ready
+    assert sorted(int(s) for a in acks_for(bus, 3) for s in a.seqs) == list(range(12))
+    server.persistence.close()  # then killed: no snapshot at exit
+
+    server, bus = start()
+    try:
+        assert len(server.replay) == 12
+        send(bus, make_traj(seed=12))
+        server.poll(0.0)
+        assert len(server.pending) == 0, "a new fragment waits for samples already taken"
+        assert [int(s) for a in acks_for(bus, 3) for s in a.seqs] == [12]
+        (reply,) = ask_for_a_batch(bus, server)
+        assert reply.ready  # and the learner samples on at the ratio
+    finally:
+        server.close()

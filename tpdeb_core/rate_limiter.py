@@ -183,6 +183,19 @@ class RateLimiter:
         """Record an insert (the caller checked `can_insert`, or is forcing it)."""
         self._inserted_steps += _as_steps("num_steps", num_steps)
 
+    def on_restored_insert(self, num_steps: int) -> None:
+        """Record an insert whose samples went unrecorded (a restart re-inserting what was
+        logged after the saved state), with the samples the ratio let the learner take against
+        it: samples_per_insert per step past min_size_to_sample, so diff ends where it stood.
+        Counted alone, it would hold every new insert back until the learner had sampled all
+        of them again."""
+        num_steps = _as_steps("num_steps", num_steps)
+        past_min_size = min(num_steps,
+                            self._inserted_steps + num_steps - self._min_size_to_sample)
+        self._inserted_steps += num_steps
+        if past_min_size > 0:
+            self._sampled_steps += round(past_min_size * self._samples_per_insert)
+
     def on_sample(self, num_steps: int) -> None:
         """Record a sample (the caller checked `can_sample`, or is forcing it)."""
         self._sampled_steps += _as_steps("num_steps", num_steps)
