@@ -91,8 +91,10 @@ NOTES = {
           "learner's drift by itself; runs longer than the budget a preset was tuned for are "
           "where the KL term has shown its worth here: RESULTS (\"Runs longer than the budget "
           "the preset was tuned for\") has HalfCheetah with KL(μ‖π_θ) held at 0.2 rising over "
-          "12M steps (6,745 → 10,570 and 6,503 → 10,842) where the fixed λ_kl = 0.01 fell "
-          "(6,402 → 3,511 over an hour, 5,536 → 2,201 under half an hour of faults). Those "
+          "12M steps (to 10,570 and 10,842 in their last 10 %, `docs/data/tune/hc-long-klt0.2/`; "
+          "6,745 and 6,503 in their first, read from the runs' logs, not kept) where the fixed "
+          "λ_kl = 0.01 fell (6,402 → 3,511 over an hour, read from that run's log, not kept; "
+          "5,536 → 2,201 under half an hour of faults, `docs/data/chaos-30-fixed-kl.json`). Those "
           "runs are no matched ablation (tuning seeds, other lengths), so the verdict below "
           "reads the 1M-step runs alone.",
     "workers": "On two cores every actor shares the machine with the learner and the other "
@@ -227,7 +229,8 @@ def cost(runs: list[dict]) -> str:
     minutes = sorted(r["wall_s"] / 60 for r in runs)
     codes = sorted({r.get("code", "?") for r in runs})
     per_update = f"{min(update):.0f} ms per update, " if update else ""
-    spread = f"; {minutes[0]:.1f}–{minutes[-1]:.1f}" if len(minutes) > 1 else ""
+    spread = (f"; {minutes[0]:.1f}–{minutes[-1]:.1f}"
+              if f"{minutes[0]:.1f}" != f"{minutes[-1]:.1f}" else "")
     return (f"{per_update}{minutes[0]:.1f} min per run (the fastest of {len(minutes)}{spread}; "
             f"commit{'s' * (len(codes) > 1)} {', '.join(codes)})")
 

@@ -128,13 +128,22 @@ class Wire:
         self.session.close()
 
 
+IN_FLIGHT_S = 0.05  # what a killed process sent just before it died may still arrive this late
+
+
 def recovery_s(fault: Fault, acks: dict, stats: list) -> float | None:
-    """Seconds from the fault's end until fragments are acknowledged again (the target
-    actor's, else anyone's) and the learner published a version newer than any before."""
+    """Seconds from the fault's end until fragments are acknowledged again and the learner
+    published a version newer than any before. After a kill the acknowledgement must be one the
+    dead process could not have sent: after an actor's kill, one of its new incarnation; after
+    another service's, one arriving more than IN_FLIGHT_S after the kill (no restarted process
+    acknowledges sooner). After a hang or a partition, any acknowledgement after its end."""
     end = fault.end_s
     actor = int(fault.target.split("-")[1]) if fault.target.startswith("actor-") else None
-    ack = min((t for (a, _, _), t in acks.items() if t > end and (actor is None or a == actor)),
-              default=None)
+    since = end + (IN_FLIGHT_S if fault.kind == "kill" and actor is None else 0.0)
+    old = ({inc for (a, inc, _), t in acks.items() if a == actor and t <= end}
+           if fault.kind == "kill" and actor is not None else set())
+    ack = min((t for (a, inc, _), t in acks.items() if t > since
+               and (actor is None or (a == actor and inc not in old))), default=None)
     before = max((v["param_version"] for t, r, _, v in stats
                   if r == "learner" and t <= end and "param_version" in v), default=-1)
     newer = min((t for t, r, _, v in stats if r == "learner" and t > end

@@ -171,8 +171,9 @@ def test_the_report_writes_every_section_with_its_verdict(tmp_path, monkeypatch,
     assert "Ant-v5: the best ζ by mean is 0.2 (3,012)" in text
     assert "Ant-v5: priority=trajectory vs priority=step: 3,012 ± 1 (n=3) against 2,912 ± 1 " \
            "(n=3): higher" in text
-    assert "Ant-v5: what each costs: trajectory 15 ms per update, 8.3 min per run (commit " \
-           "abc1234); step 90 ms per update, 8.3 min per run (commit abc1234)" in text
+    assert "Ant-v5: what each costs: trajectory 15 ms per update, 8.3 min per run (the " \
+           "fastest of 3; commit abc1234); step 90 ms per update, 8.3 min per run (the fastest " \
+           "of 3; 8.3–41.7; commit abc1234)" in text
     assert "Hopper-v5: kl=preset vs kl=off: 3,012 ± 1 (n=3) against 1,012 ± 1 (n=3): higher" in text
     # the workers study's own 2-actor run (2,800), not the comparison grid's preset run (3,000)
     assert "2 actors 2,812 in 8.3 min" in text

@@ -47,6 +47,18 @@ def test_recovery_waits_for_the_targets_acks_and_a_newer_learner_version():
     assert chaos.recovery_s(fault, {(0, 1, 5): 15.5}, stats) is None  # actor 1 never came back
 
 
+def test_after_a_kill_only_an_ack_the_dead_process_could_not_have_sent_counts():
+    versions = [learner(9.0, 40), learner(10.5, 41)]
+    replay = chaos.Fault(at_s=10.0, kind="kill", target="replay")
+    # an ack the dying replay had sent lands 10 ms after the kill; the restarted one acks at 13 s
+    acks = {(0, 1, 5): 10.01, (0, 1, 6): 13.0}
+    assert chaos.recovery_s(replay, acks, versions) == 3.0
+    # a killed actor's old incarnation still being acknowledged is not its recovery
+    actor = chaos.Fault(at_s=10.0, kind="kill", target="actor-0")
+    acks = {(0, 1, 5): 9.0, (0, 1, 6): 10.5, (0, 2, 0): 14.0}
+    assert chaos.recovery_s(actor, acks, versions) == 4.0
+
+
 def test_versions_are_judged_per_actor_process():
     stats = [learner(1, 5), learner(2, 6),
              (1, "actor", "0", {"param_version": 5, "incarnation": "a"}),

@@ -127,7 +127,9 @@ def test_a_cluster_whose_disk_fills_for_a_while_finishes_and_loses_nothing_ackno
         cluster = procs.spawn("cluster", "--env-id", "InvertedPendulum-v5", "--seed", "1",
                               "--total-timesteps", "60000", "--run-dir", str(run_dir))
         procs.wait_for_line(cluster, "[learner] tpdeb-learner: [", timeout_s=120)
-        with (disk / "fill").open("wb") as f, pytest.raises(OSError, match="No space"):
+        # unbuffered: the write that meets the full disk raises, and closing has nothing left
+        # to flush (a buffered tail would raise again on close, outside pytest.raises)
+        with (disk / "fill").open("wb", buffering=0) as f, pytest.raises(OSError, match="No space"):
             while True:  # the disk fills up, as a neighbour's job would fill it
                 f.write(b"\0" * (1 << 20))
                 f.flush()
