@@ -267,6 +267,18 @@ def main() -> int:
     return 0
 
 
+def judge(runs: list[TestRun]) -> list[str]:
+    """Why a fuzz run fails (empty: it passes), by the rule fixed before it: no fuzz test
+    crashed a decoder, every one passed (its properties held), and every one counted cases
+    (one that counts none no longer reaches the decoders)."""
+    if not runs:
+        return ["no fuzz test ran"]
+    why = [f"{r.name}: {r.crashes} crash(es)" for r in runs if r.crashes]
+    why += [f"{r.name}: {r.outcome}" for r in runs if r.outcome != "passed"]
+    why += [f"{r.name}: no case counted" for r in runs if r.outcome == "passed" and not r.cases]
+    return why
+
+
 def keep(path: Path, counter: FuzzCounter, record: dict, code: int, short: list[str]) -> None:
     """The counts, the crashes' kinds and the verdict (no crash and every property held) to
     `path`."""
@@ -274,8 +286,7 @@ def keep(path: Path, counter: FuzzCounter, record: dict, code: int, short: list[
     by_type = Counter()
     for r in runs:
         by_type.update(r.by_type)
-    why = [f"{r.name}: {r.crashes} crash(es)" for r in runs if r.crashes]
-    why += [f"{r.name}: {r.outcome}" for r in runs if r.outcome != "passed"]
+    why = judge(runs)
     result = {"examples_per_test": counter.examples, "pytest_exit": int(code),
               "tests": [{"name": r.name, "cases": r.cases, "crashes": r.crashes,
                          "seconds": round(r.seconds, 1), "outcome": r.outcome,

@@ -1,6 +1,7 @@
 """How much a snapshot stalls the replay server's loop, and how long a restore takes.
 
     python bench/replay_snapshot.py [--uniform-steps 8192,262144,1048576] [--seconds 3]
+    python bench/replay_snapshot.py --out docs/data/replay-snapshot.json   # the figures kept
 
 For each uniform-buffer size, a replay server (its real code, with a stand-in for the Zenoh
 session) is filled with HalfCheetah-sized fragments (T 64, obs 17, act 6) through its own
@@ -15,12 +16,14 @@ how long a new server takes to restore everything (snapshot + log).
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+import provenance
 
 from tpdeb.protocol import Trajectory, decode, encode
 from tpdeb.services.config.service import ReplayServiceConfig
@@ -102,12 +105,19 @@ def time_ops(server: ReplayServer, payloads: list[bytes], seconds: float, until=
     return ingest_ms, sample_ms
 
 
-def summary(values: list[float]) -> str:
+def percentiles(values: list[float]) -> dict | None:
+    """p50, p99 and max (ms) of one op's latencies, with their count."""
     if not values:
-        return "-"
+        return None
     ordered = sorted(values)
-    p99 = ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))]
-    return f"{statistics.median(ordered):.2f} / {p99:.2f} / {ordered[-1]:.1f}"
+    return {"p50": statistics.median(ordered),
+            "p99": ordered[min(len(ordered) - 1, int(0.99 * len(ordered)))],
+            "max": ordered[-1], "n": len(ordered)}
+
+
+def summary(values: list[float]) -> str:
+    p = percentiles(values)
+    return "-" if p is None else f"{p['p50']:.2f} / {p['p99']:.2f} / {p['max']:.1f}"
 
 
 def run(uniform_steps: int, seconds: float) -> dict:
@@ -148,7 +158,9 @@ def main() -> None:
     parser.add_argument("--uniform-steps", default="8192,262144,1048576",
                         help="uniform buffer sizes in steps, comma-separated")
     parser.add_argument("--seconds", type=float, default=3.0, help="idle timing per size")
+    parser.add_argument("--out", type=Path, help="keep the figures here (JSON)")
     args = parser.parse_args()
+    record = provenance.start()
     rows = []
     for steps in (int(float(s)) for s in args.uniform_steps.split(",")):
         print(f"uniform buffer {steps:,} steps …", flush=True)
@@ -162,6 +174,13 @@ def main() -> None:
               f"{r['write_s']:.2f} | {r['size_mb']:.0f} | {summary(r['ingest_idle'])} | "
               f"{summary(r['ingest_during'])} | {summary(r['sample_idle'])} | "
               f"{summary(r['sample_during'])} | {r['restore_s']:.1f} |")
+    if args.out is not None:
+        ops = ("ingest_idle", "ingest_during", "sample_idle", "sample_during")
+        kept = [{k: (percentiles(v) if k in ops else v) for k, v in r.items()} for r in rows]
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(provenance.stamp(
+            {"seconds": args.seconds, "latency_unit": "ms", "sizes": kept}, record), indent=1))
+        print(f"\nfigures in {args.out}")
 
 
 if __name__ == "__main__":
