@@ -60,25 +60,36 @@ def git(*args: str, cwd: Path | None = None) -> str | None:
     return proc.stdout if proc.returncode == 0 else None
 
 
-def code_state(cwd: Path | None = None) -> dict:
-    """The commit checked out and how the tracked code differs from it. Pages and data
-    (`docs/`) are not code: a grid that writes result files while it runs is not dirty."""
+def code_state(cwd: Path | None = None, keep_diff: bool = True) -> dict:
+    """The commit checked out and how the tracked code differs from it (the diff kept under
+    `docs/data/diffs/` when small and `keep_diff`). Pages and data (`docs/`) are not code: a
+    grid that writes result files while it runs is not dirty."""
     head = git("rev-parse", "HEAD", cwd=cwd)
     if head is None:
-        return {"commit": None, "dirty": None, "diff_sha256": None, "diff_file": None}
+        return {"commit": None, "commit_date": None, "dirty": None, "diff_sha256": None,
+                "diff_file": None}
     diff = git("diff", "HEAD", "--binary", "--", ".", ":(exclude)docs", cwd=cwd) or ""
-    state = {"commit": head.strip(), "dirty": bool(diff), "diff_sha256": None,
-             "diff_file": None}
+    state = {"commit": head.strip(), "commit_date": commit_date(head.strip(), cwd),
+             "dirty": bool(diff), "diff_sha256": None, "diff_file": None}
     if diff:
         digest = hashlib.sha256(diff.encode()).hexdigest()
         state["diff_sha256"] = digest
-        if len(diff.encode()) <= DIFF_KEEP_BYTES:
+        if keep_diff and len(diff.encode()) <= DIFF_KEEP_BYTES:
             path = DATA / "diffs" / f"{digest[:16]}.diff"
             if not path.exists():
                 path.parent.mkdir(parents=True, exist_ok=True)
                 path.write_text(diff)
             state["diff_file"] = str(path.relative_to(ROOT))
     return state
+
+
+def commit_date(sha: str, cwd: Path | None = None) -> str | None:
+    """A commit's date (UTC, ISO 8601), kept in the record so that nothing read later needs
+    the history (a shallow clone has none)."""
+    out = git("show", "-s", "--format=%ct", sha, cwd=cwd)
+    if not out or not out.strip().isdigit():
+        return None
+    return dt.datetime.fromtimestamp(int(out), dt.timezone.utc).isoformat(timespec="seconds")
 
 
 def packages() -> dict[str, str | None]:
@@ -156,7 +167,7 @@ def add_verdict(result: dict, rule: str, version: int, passed: bool, reasons: li
     `judged_on` the code that judged (today's checkout unless said)."""
     verdict = {"rule": rule, "rule_version": version, "verdict": "PASS" if passed else "FAIL",
                "reasons": list(reasons), "judged_at": now(),
-               "judged_on": judged_on or short(code_state())}
+               "judged_on": judged_on or short(code_state(keep_diff=False))}
     if note:
         verdict["note"] = note
     if details:
@@ -279,7 +290,8 @@ def infer(path: Path, data: dict, commits: list[tuple[int, str]]) -> dict:
             if ended_t < next(t for t, sha in commits if sha == commit):
                 commit = ended_on.strip()
                 basis += f", bounded by the commit recorded at its end ({code})"
-    record.update(status="inferred", commit=commit, basis=f"last commit before {basis}")
+    record.update(status="inferred", commit=commit, commit_date=commit_date(commit),
+                  basis=f"last commit before {basis}")
     if isinstance(code, str) and code.endswith("-dirty"):
         record["dirty_at_end"] = True  # the tree differed from its commit when the run ended
     return record
@@ -296,12 +308,20 @@ def write_like(path: Path, text: str, data: dict) -> None:
 
 
 def backfill(paths: list[Path]) -> Counter:
-    """Give every file without a record an inferred (or unknown) one, in the file."""
+    """Give every file without a record an inferred (or unknown) one, in the file (and a
+    record that names its commit but not that commit's date, the date)."""
     commits, counts = commit_times(), Counter()
     for path in paths:
         text = path.read_text()
         data = json.loads(text)
-        if not isinstance(data, dict) or FIELD in data:
+        if not isinstance(data, dict):
+            continue
+        record = data.get(FIELD)
+        if isinstance(record, dict):
+            if record.get("commit") and not record.get("commit_date"):
+                record["commit_date"] = commit_date(record["commit"])
+                write_like(path, text, data)
+                counts["dated"] += 1
             continue
         data[FIELD] = infer(path, data, commits)
         write_like(path, text, data)
@@ -376,7 +396,8 @@ PAGES = {
     "docs/RESULTS.md": ("paper/", "race/", "race-tune/", "race-superseded/", "tune/", "check/",
                         "superseded/", "thinlink/"),
     "docs/ABLATIONS.md": ("ablation/",),
-    "docs/RELIABILITY.md": ("chaos-", "soak", "crowd/"),
+    "docs/RELIABILITY.md": ("chaos-", "soak", "crowd/", "faults/", "partition/",
+                            "replay-snapshot", "fuzz"),
     "docs/BENCHMARKS.md": ("gpu/", "capacity/", "crowd/"),
 }
 BEGIN, END = "<!-- provenance:begin -->", "<!-- provenance:end -->"
@@ -425,12 +446,12 @@ def commit_table(paths: list[Path], prefix: str = GRID) -> str:
         data = json.loads(path.read_text())
         record = data.get(FIELD) or {}
         rows.setdefault(record.get("commit") or "unknown", []).append({**data, FIELD: record})
-    order = {sha: n for n, (_, sha) in enumerate(commit_times())}
+    dates = {sha: min((r[FIELD].get("commit_date") or "") for r in runs)
+             for sha, runs in rows.items()}
     lines = ["| commit | its date | provenance | tree | runs |", "|---|---|---|---|---|"]
-    for sha in sorted(rows, key=lambda c: order.get(c, len(order))):
+    for sha in sorted(rows, key=lambda c: (dates[c] or "~", c)):
         runs = rows[sha]
-        date = (git("log", "-1", "--format=%cd", "--date=format:%Y-%m-%d %H:%M", sha) or
-                "").strip() if sha != "unknown" else ""
+        date = dates[sha][:16].replace("T", " ")
         status = "/".join(sorted({r[FIELD].get("status", "none") for r in runs}))
         tree = "; ".join(sorted({tree_text(r) for r in runs}))
         cells: dict[tuple[str, str], list[int]] = {}
@@ -523,7 +544,13 @@ def main(argv: list[str] | None = None) -> int:
     for page in stale:
         print(f"  STALE: {page}'s provenance counts differ from the files "
               "(python bench/provenance.py --pages)")
-    return 1 if bad or stale else 0
+    prefixes = tuple(p for page in PAGES.values() for p in page)
+    unpaged = [path for path in paths if args.data is None
+               and not str(path.relative_to(DATA)).startswith(prefixes)]
+    for path in unpaged:
+        print(f"  ON NO PAGE: {path.relative_to(ROOT)} (bench/provenance.py's PAGES says which "
+              "page counts which files)")
+    return 1 if bad or stale or unpaged else 0
 
 
 if __name__ == "__main__":

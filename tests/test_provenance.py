@@ -51,6 +51,7 @@ def test_a_record_names_the_commit_and_keeps_the_diff_of_a_dirty_tree(repo):
     head = commit(repo, "code.py", "x = 1\n", 1_700_000_000)
     clean = provenance.start(["bench/x.py", "--seed", "3"])
     assert clean["commit"] == head and clean["dirty"] is False
+    assert clean["commit_date"] == "2023-11-14T22:13:20+00:00"
     assert clean["command"][1:] == ["bench/x.py", "--seed", "3"]
     assert clean["machine"]["cores"] == os.cpu_count() and clean["started_at"]
     assert set(provenance.PACKAGES) <= set(clean["packages"])
@@ -89,6 +90,7 @@ def test_inference_takes_the_last_commit_before_the_run_began_not_the_one_that_a
     path = repo / "docs" / "data" / "run.json"
     record = provenance.infer(path, result, provenance.commit_times())
     assert record["status"] == "inferred" and record["commit"] == second
+    assert record["commit_date"] == "2023-11-14T22:30:00+00:00"  # kept: no history needed
     assert "less the run's 2,500 s" in record["basis"]
     # the commit recorded when the run ended bounds it: it cannot have started on a later one
     ended = {**result, "code": first[:7] + "-dirty"}
