@@ -30,6 +30,7 @@ from paper_report import (
     seeds,
     spread_test,
 )
+from provenance import commit_of
 from runs import ROOT
 
 from tpdeb.services.plot import band, label_axes, save, smooth
@@ -89,13 +90,13 @@ NOTES = {
           "\"Falls from its peak\" is each seed's smoothed curve's fall by the end, as a "
           "fraction of its peak. At 1M steps the learning rate anneals to 0, which bounds the "
           "learner's drift by itself; runs longer than the budget a preset was tuned for are "
-          "where the KL term has shown its worth here: RESULTS (\"Runs longer than the budget "
-          "the preset was tuned for\") has HalfCheetah with KL(μ‖π_θ) held at 0.2 rising over "
-          "12M steps (to 10,570 and 10,842 in their last 10 %, `docs/data/tune/hc-long-klt0.2/`; "
-          "6,745 and 6,503 in their first, read from the runs' logs, not kept) where the fixed "
+          "where the KL term may matter most (not judged here): RESULTS (\"Runs longer than "
+          "the budget the preset was tuned for\") has HalfCheetah with KL(μ‖π_θ) held at 0.2 "
+          "going over 12M steps from about 6,700 and 6,500 in the first 10 % of its kept curves "
+          "to 10,570 and 10,842 in the last (`docs/data/tune/hc-long-klt0.2/`), where the fixed "
           "λ_kl = 0.01 fell (6,402 → 3,511 over an hour, read from that run's log, not kept; "
-          "5,536 → 2,201 under half an hour of faults, `docs/data/chaos-30-fixed-kl.json`). Those "
-          "runs are no matched ablation (tuning seeds, other lengths), so the verdict below "
+          "5,536 → 2,201 under half an hour of faults, `docs/data/chaos-30-fixed-kl.json`). "
+          "Those runs are no matched ablation (tuning seeds, other lengths), so the verdict below "
           "reads the 1M-step runs alone.",
     "workers": "On two cores every actor shares the machine with the learner and the other "
                "actors. Against env steps the runs show what more workers give per sample; "
@@ -227,7 +228,7 @@ def cost(runs: list[dict]) -> str:
     update = [r["diagnostics"]["perf/update_ms"] for r in runs
               if "perf/update_ms" in r.get("diagnostics", {})]
     minutes = sorted(r["wall_s"] / 60 for r in runs)
-    codes = sorted({r.get("code", "?") for r in runs})
+    codes = sorted({commit_of(r) for r in runs})
     per_update = f"{min(update):.0f} ms per update, " if update else ""
     spread = (f"; {minutes[0]:.1f}–{minutes[-1]:.1f}"
               if f"{minutes[0]:.1f}" != f"{minutes[-1]:.1f}" else "")
@@ -615,7 +616,7 @@ def section(study: Study, by_env: dict[str, list[tuple[str, list[dict]]]],
     if not any(runs for rows in by_env.values() for _, runs in rows):
         return "\n".join(out + ["No runs yet."])
     for env_id, rows in by_env.items():
-        falls = "fall from peak" if study.name in ("tau", "kl") else ""
+        falls = "fall from peak (return)" if study.name in ("tau", "kl") else ""
         out += [f"**{env_id}**", "", table(rows, falls), ""]
         if study.name != "buffers":  # sixteen curves: the heatmap instead
             image = IMAGES / f"{study.name}-{env_id}.png"
@@ -661,8 +662,14 @@ preset's own settings is the comparison grid's (`docs/data/paper/`). Seeds 11–
 never used for tuning. A difference counts where the means differ by more than the larger seed
 standard deviation; a trend (gains that diminish) where the change between its ends exceeds their
 combined spread (the root sum of squares of the seed standard deviations); a fall from the peak
-is a collapse where its mean less its standard deviation is 20 % or more. A cell with one seed
-has no spread: its part reads "not judged", never a yes or no by its direction.
+is a collapse where its mean less its standard deviation is 20 % or more (each seed's smoothed
+curve's fall by the end as a fraction of its peak; the tables' "fall from peak" column is the
+mean curve's, in return). τ ≥ 0.01 "falls sharply" where more than half of those τ collapse;
+the smallest τ is "stable" where its fall's mean plus its standard deviation is under 20 % and
+it reached at least half the preset's training return (a run that barely learns has nothing to
+fall from); "better sooner" compares the returns where the shortest run's learner clock ends.
+A cell with one seed has no spread: its part reads "not judged", never a yes or no by its
+direction.
 
     python bench/ablate.py            # runs what is missing (resumable; many hours)
     python bench/ablate.py --plan     # which runs exist
@@ -685,17 +692,32 @@ def header(doc: Path) -> str:
     return f"{title}\n\n{block}\n{rest}"
 
 
+def elsewhere(runs) -> str:
+    """Which cells' runs were made on another host than the 2-core machine (their files'
+    `host`), e.g. " (on it: zeta=0 seed 11, …)"."""
+    named = []
+    for r in runs:
+        if r.path.exists():
+            host = json.loads(r.path.read_text()).get("host")
+            if host:
+                named.append(f"{r.path.parent.name} seed {r.seed}")
+    return f" (there: {', '.join(sorted(named))})" if named else ""
+
+
 def report(runs) -> None:
     """Rewrite docs/ABLATIONS.md from the result files present (`runs`: the plan)."""
     IMAGES.mkdir(parents=True, exist_ok=True)
     all_studies = studies()
     presets = {env_id: preset_values(env_id) for s in all_studies.values() for env_id in s.envs}
     made = [json.loads(r.path.read_text()) for r in runs if r.path.exists()]
-    codes = sorted({m.get("code", "?") for m in made})
+    codes = sorted({commit_of(m) for m in made})
     hosts = Counter(m.get("host", "the 2-core machine (the learner on its CPU)") for m in made)
     parts = [header(DOC), f"Runs present: {len(made)} of {len(runs)}"
-             + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)}" if codes else "")
-             + "".join(f"; {n} on {host}" for host, n in hosts.most_common()) + "."]
+             + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)} (as each file's "
+                f"provenance names it: inferred from its start for runs made before that "
+                f"record existed)" if codes else "")
+             + "".join(f"; {n} on {host}" for host, n in hosts.most_common())
+             + elsewhere(runs) + "."]
     by_study = {s.name: rows_of(s, presets) for s in all_studies.values()}
     own = {s.name: own_runs(s, presets) for s in all_studies.values()}
     table = glance_table(all_studies, by_study, own)

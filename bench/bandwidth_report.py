@@ -13,6 +13,7 @@ import paper_report  # noqa: I001  (bench/ is on sys.path)
 import race_report
 from bandwidth import ALGOS, BANDED, LINKS, SEEDS, UNLIMITED, link_name
 from paper_report import VERDICT, cell, compare, judgement, replace_between, seeds, spread_test
+from provenance import commit_of
 from runs import ROOT
 
 from tpdeb.services.plot import band, save
@@ -262,7 +263,7 @@ def report(directory: Path) -> None:
         print(f"no finished runs in {directory}")
         return
     budgets = sorted({r["budget_s"] / 60 for r in results})
-    codes = sorted({r.get("code", "?") for r in results})
+    codes = sorted({commit_of(r) for r in results})
     parts = [f"Each run: {', '.join(f'{b:g}' for b in budgets)} minutes of training on two "
              f"cores; commit{'s' * (len(codes) > 1)} {', '.join(codes)}. Training return: the "
              "episodes ending in the last 10 % of the budget; evaluation: the final policy, 10 "

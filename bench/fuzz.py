@@ -298,7 +298,7 @@ def keep(path: Path, counter: FuzzCounter, record: dict, code: int, short: list[
                               for c in counter.crashes.values()],
               "table_markdown": render(counter)}
     provenance.stamp(result, record)
-    provenance.add_verdict(result, "bench/fuzz.py:keep", 1, not why, why)
+    provenance.add_verdict(result, "bench/fuzz.py:judge", 1, not why, why)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1))
     say(f"counts in {path}")

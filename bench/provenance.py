@@ -150,6 +150,15 @@ def stamp(result: dict, record: dict) -> dict:
     return result
 
 
+def commit_of(data: dict) -> str:
+    """The commit a data file's run began on, short ('1a2b3c4', '-dirty' where its record says
+    so): from its provenance (recorded or inferred), else what the file says, else '?'."""
+    record = data.get(FIELD)
+    if isinstance(record, dict) and record.get("commit"):
+        return short(record)
+    return data.get("code") or "?"
+
+
 def short(record: dict | None) -> str:
     """'1a2b3c4' / '1a2b3c4-dirty' / '?' for a record (any status)."""
     if not record or not record.get("commit"):
@@ -395,9 +404,10 @@ def listing(paths: list[Path]) -> tuple[list[str], Counter, list[str]]:
 PAGES = {
     "docs/RESULTS.md": ("paper/", "race/", "race-tune/", "race-superseded/", "tune/", "check/",
                         "superseded/", "thinlink/"),
-    "docs/ABLATIONS.md": ("ablation/",),
+    "docs/ABLATIONS.md": ("ablation/", "paper/Ant-v5__tpdeb", "paper/Hopper-v5__tpdeb",
+                          "tune/hc-long-klt0.2/", "chaos-30-fixed-kl"),
     "docs/RELIABILITY.md": ("chaos-", "soak", "crowd/", "faults/", "partition/",
-                            "replay-snapshot", "fuzz"),
+                            "replay-snapshot", "fuzz", "tune/hc-long-klt0.2/"),
     "docs/BENCHMARKS.md": ("gpu/", "capacity/", "crowd/"),
 }
 BEGIN, END = "<!-- provenance:begin -->", "<!-- provenance:end -->"
