@@ -467,6 +467,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text)
+        provenance.written(args.out)
     print(report(result))
     for line in why:
         say(f"  {line}")

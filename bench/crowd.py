@@ -268,6 +268,7 @@ def report(args, child: dict, probe: dict, rss: list[int], cores: dict[str, floa
         DATA.mkdir(parents=True, exist_ok=True)
         (DATA / f"{args.env_id}__{args.actors}actors{'__flood' if args.flood else ''}.json"
          ).write_text(text)
+        provenance.written(DATA)
     a = result["per_actor_fragments_per_s"]
     print(f"[crowd] {args.actors} actors{' + a flooder' if args.flood else ''}, "
           f"{args.seconds:g} s: {result['fragments_per_s']:,.0f} fragments/s acknowledged "

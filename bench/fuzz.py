@@ -301,6 +301,7 @@ def keep(path: Path, counter: FuzzCounter, record: dict, code: int, short: list[
     provenance.add_verdict(result, "bench/fuzz.py:judge", 1, not why, why)
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(result, indent=1))
+    provenance.written(path)
     say(f"counts in {path}")
 
 

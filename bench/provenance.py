@@ -2,9 +2,10 @@
 
 Every bench that writes a data file calls `start()` when its run begins and stamps the record
 into the file it writes (`stamp`): the commit checked out at the start, whether tracked code
-outside `docs/` differed from it (and the sha256 of that diff, the diff itself kept under
-`docs/data/diffs/` when small), the versions of the packages that move the figures, the machine
-(CPU model, cores, memory, GPU), the exact command line, and start and end times.
+outside `docs/` differed from it (and the sha256 of that diff; the diff itself, when small, is
+kept under `docs/data/diffs/` once the run's data file lands under `docs/data/`: `written`),
+the versions of the packages that move the figures, the machine (CPU model, cores, memory,
+GPU), the exact command line, and start and end times.
 
 A verdict is never rewritten: `add_verdict` appends one (its rule's name and version, the
 outcome, the reasons and when and on which commit it was judged) to the file's `verdicts`, so a
@@ -75,11 +76,13 @@ def code_state(cwd: Path | None = None, keep_diff: bool = True) -> dict:
         digest = hashlib.sha256(diff.encode()).hexdigest()
         state["diff_sha256"] = digest
         if keep_diff and len(diff.encode()) <= DIFF_KEEP_BYTES:
-            path = DATA / "diffs" / f"{digest[:16]}.diff"
-            if not path.exists():
-                path.parent.mkdir(parents=True, exist_ok=True)
-                path.write_text(diff)
-            state["diff_file"] = str(path.relative_to(ROOT))
+            # staged under bench/out/ (not kept); `written` copies it beside the data when a
+            # data file naming it lands under docs/data/
+            staged = ROOT / "bench" / "out" / "diffs" / f"{digest[:16]}.diff"
+            if not staged.exists():
+                staged.parent.mkdir(parents=True, exist_ok=True)
+                staged.write_text(diff)
+            state["diff_file"] = f"docs/data/diffs/{digest[:16]}.diff"
     return state
 
 
@@ -340,8 +343,8 @@ def backfill(paths: list[Path]) -> Counter:
 
 # ----------------------------------------------------------------------------- the check
 
-def data_files(root: Path = DATA) -> list[Path]:
-    return sorted(root.rglob("*.json"))
+def data_files(root: Path | None = None) -> list[Path]:
+    return sorted((root or DATA).rglob("*.json"))
 
 
 def problem(data) -> str | None:
@@ -359,6 +362,8 @@ def problem(data) -> str | None:
                                "packages") if record.get(k) in (None, "", [])]
         if missing:
             return f"recorded provenance lacks {', '.join(missing)}"
+    if record.get("diff_file") and not (ROOT / record["diff_file"]).is_file():
+        return f"the diff its record names, {record['diff_file']}, is missing"
     if status == "inferred" and not (record.get("commit") and record.get("basis")):
         return "inferred provenance lacks its commit or its basis"
     if status == "unknown" and not record.get("why"):
@@ -519,6 +524,38 @@ def write_pages(paths: list[Path]) -> list[str]:
             path.write_text(new)
             changed.append(page)
     return changed
+
+
+def keep_diff(path: Path) -> None:
+    """Copy the diff a data file's record names from where its run staged it to
+    docs/data/diffs/, where the record says it lies."""
+    try:
+        record = json.loads(Path(path).read_text()).get(FIELD) or {}
+    except (OSError, ValueError, AttributeError):
+        return
+    name = record.get("diff_file")
+    if not name:
+        return
+    kept = ROOT / name
+    staged = ROOT / "bench" / "out" / "diffs" / kept.name
+    if not kept.exists() and staged.is_file():
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(staged, kept)
+
+
+def written(path: Path) -> None:
+    """A bench wrote a data file at `path`: where it lies under docs/data/, the pages' counts
+    (and RESULTS' table of the grid's commits) follow it, so a result committed as it comes
+    leaves no page stale."""
+    try:
+        Path(path).resolve().relative_to(DATA.resolve())
+    except ValueError:
+        return
+    for kept in [path] if Path(path).is_file() else sorted(Path(path).rglob("*.json")):
+        keep_diff(kept)
+    changed = write_pages(data_files())
+    if changed:
+        print(f"provenance: counts updated in {', '.join(changed)}", flush=True)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -180,6 +180,7 @@ def main() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(provenance.stamp(
             {"seconds": args.seconds, "latency_unit": "ms", "sizes": kept}, record), indent=1))
+        provenance.written(args.out)
         print(f"\nfigures in {args.out}")
 
 

@@ -12,6 +12,8 @@ import sys
 import time
 from pathlib import Path
 
+import provenance  # noqa: I001  (bench/ is on sys.path)
+
 from tpdeb.services.store.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,6 +62,7 @@ def save_json(path: Path, result: dict) -> None:
     tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(result))
     tmp.replace(path)
+    provenance.written(path)
 
 
 def _exit_on_sigterm(signum, frame):

@@ -270,6 +270,7 @@ def rejudge(path: Path, png: Path | None, parser) -> int:
     else:
         add_verdict(results, judged, note="judged again from the saved series")
         path.write_text(json.dumps(results, indent=1))
+        provenance.written(path)
         say(f"{judged['result']} by rule version {RULE_VERSION}"
             + (f" ({'; '.join(judged['reasons'])})" if judged["reasons"] else "")
             + f"; added to {path}'s verdicts" + (f", figure in {png}" if png else ""))
@@ -431,6 +432,7 @@ def main() -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(results, indent=1))
+    provenance.written(out)
 
     print()
     print(table)

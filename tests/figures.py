@@ -27,4 +27,5 @@ def keep_figures(name: str, figures: dict) -> Path | None:
     path = Path(folder) / f"{name}__{time.strftime('%Y%m%dT%H%M%SZ', time.gmtime())}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(provenance.stamp({"test": name, **figures}, record), indent=1))
+    provenance.written(path)
     return path

@@ -61,8 +61,13 @@ def test_a_record_names_the_commit_and_keeps_the_diff_of_a_dirty_tree(repo):
     dirty = provenance.start()
     assert dirty["dirty"] is True and dirty["commit"] == head
     kept = repo / dirty["diff_file"]
-    assert "+x = 2" in kept.read_text() and dirty["diff_sha256"].startswith(kept.stem)
+    assert dirty["diff_sha256"].startswith(kept.stem) and not kept.exists()  # staged only
     result = provenance.stamp({"figure": 1.0}, dirty)
+    assert "is missing" in provenance.problem(result)
+    path = repo / "docs" / "data" / "run.json"
+    path.write_text(json.dumps(result))
+    provenance.keep_diff(path)  # what `written` does when a data file lands
+    assert "+x = 2" in kept.read_text()
     assert result["provenance"]["ended_at"] and provenance.problem(result) is None
 
 
@@ -123,3 +128,20 @@ def test_a_verdict_is_added_beside_the_earlier_one_never_in_its_place():
         (1, "FAIL"), (2, "PASS")]
     assert result["verdicts"][0]["reasons"] == ["drift 6 % > 5 %"]
     assert provenance.latest_verdict(result)["verdict"] == "PASS"
+
+
+def test_a_data_file_written_brings_the_pages_counts_with_it(repo):
+    commit(repo, "code.py", "a\n", 1_700_000_000)
+    for page in provenance.PAGES:
+        (repo / page).write_text("# A page\n\nIts text.\n")
+    (repo / provenance.GRID_RESULTS).write_text(
+        f"# Results\n\n{provenance.GRID_BEGIN}\n{provenance.GRID_END}\n")
+    data = repo / "docs" / "data"
+    path = data / "ablation" / "run.json"
+    path.parent.mkdir(parents=True)
+    path.write_text(json.dumps(provenance.stamp({"final_return": 1.0}, provenance.start())))
+    assert provenance.stale_pages(provenance.data_files()) != []
+    provenance.written(path)
+    assert provenance.stale_pages(provenance.data_files()) == []
+    assert "this page's 1 data files" in (repo / "docs" / "ABLATIONS.md").read_text()
+    provenance.written(repo / "elsewhere.json")  # outside docs/data: nothing to follow
