@@ -12,6 +12,7 @@ from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
+import provenance
 from ablate import Cell, Study, preset_values, studies, tag_of  # noqa: I001  (bench/ is on sys.path)
 from paper import result_path
 from paper_report import (
@@ -402,12 +403,11 @@ def tau_parts(runs: dict[str, list[dict]], env_id: str, own: list[dict]
     smallest = min(runs, key=value)
     stable = collapsed(falls[smallest])
     ours = statistics.mean(training(runs[smallest]))
-    text = (f"{smallest} stays stable: it falls {cell(falls[smallest], '.0%')}, "
-            + ("below a collapse beyond the seed spread" if stable == -1 else
-               "not below a collapse beyond the seed spread"))
+    head = f"{smallest} stays stable: it falls {cell(falls[smallest], '.0%')}, "
+    text = head + ("below a collapse beyond the seed spread" if stable == -1 else
+                   "not below a collapse beyond the seed spread")
     if stable is None:
-        parts.append((f"{smallest} stays stable: it falls {cell(falls[smallest], '.0%')}, "
-                      f"{NOT_JUDGED}", None))
+        parts.append((head + NOT_JUDGED, None))
     elif not own:
         parts.append((f"{text}; the preset's own runs on {env_id} are missing, so that it "
                       f"learned (at least {LEARNED:.0%} of their return) is not shown", False))
@@ -677,14 +677,11 @@ direction.
 """
 
 
-# a block bench/provenance.py keeps under the page's title: carried over when the page is rewritten
-PROVENANCE = "<!-- provenance:begin -->", "<!-- provenance:end -->"
-
-
 def header(doc: Path) -> str:
-    """HEADER, with the page's provenance block (if it has one) kept under the title."""
+    """HEADER, with the count bench/provenance.py keeps under the page's title (if the page
+    has one) carried over."""
     text = doc.read_text() if doc.exists() else ""
-    begin, end = PROVENANCE
+    begin, end = provenance.BEGIN, provenance.END
     if begin not in text or end not in text:
         return HEADER
     block = text[text.index(begin):text.index(end) + len(end)]
@@ -692,16 +689,11 @@ def header(doc: Path) -> str:
     return f"{title}\n\n{block}\n{rest}"
 
 
-def elsewhere(runs) -> str:
+def elsewhere(made: list[tuple]) -> str:
     """Which cells' runs were made on another host than the 2-core machine (their files'
-    `host`), e.g. " (on it: zeta=0 seed 11, …)"."""
-    named = []
-    for r in runs:
-        if r.path.exists():
-            host = json.loads(r.path.read_text()).get("host")
-            if host:
-                named.append(f"{r.path.parent.name} seed {r.seed}")
-    return f" (there: {', '.join(sorted(named))})" if named else ""
+    `host`), e.g. " (there: zeta-0 seed 11, …)"; `made`: (run, its result) pairs."""
+    named = sorted(f"{r.path.parent.name} seed {r.seed}" for r, m in made if m.get("host"))
+    return f" (there: {', '.join(named)})" if named else ""
 
 
 def report(runs) -> None:
@@ -709,15 +701,16 @@ def report(runs) -> None:
     IMAGES.mkdir(parents=True, exist_ok=True)
     all_studies = studies()
     presets = {env_id: preset_values(env_id) for s in all_studies.values() for env_id in s.envs}
-    made = [json.loads(r.path.read_text()) for r in runs if r.path.exists()]
-    codes = sorted({commit_of(m) for m in made})
-    hosts = Counter(m.get("host", "the 2-core machine (the learner on its CPU)") for m in made)
+    made = [(r, json.loads(r.path.read_text())) for r in runs if r.path.exists()]
+    codes = sorted({commit_of(m) for _, m in made})
+    hosts = Counter(m.get("host", "the 2-core machine (the learner on its CPU)")
+                    for _, m in made)
     parts = [header(DOC), f"Runs present: {len(made)} of {len(runs)}"
              + (f", made on commit{'s' * (len(codes) > 1)} {', '.join(codes)} (as each file's "
                 f"provenance names it: inferred from its start for runs made before that "
                 f"record existed)" if codes else "")
              + "".join(f"; {n} on {host}" for host, n in hosts.most_common())
-             + elsewhere(runs) + "."]
+             + elsewhere(made) + "."]
     by_study = {s.name: rows_of(s, presets) for s in all_studies.values()}
     own = {s.name: own_runs(s, presets) for s in all_studies.values()}
     table = glance_table(all_studies, by_study, own)

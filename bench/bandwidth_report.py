@@ -209,7 +209,7 @@ def headline(results: list[dict], env_id: str) -> str:
         if theirs and gaps:
             rivals.append(f"{times(ours, theirs)}{NAMES[base]}'s {cell(theirs)} "
                           f"({VERDICT[compare(ours, theirs)]})")
-            result = paper_report.grows(gaps[-1][1], gaps[0][1])[0] if len(gaps) >= 2 else None
+            result = lead_trend(gaps)[0] if len(gaps) >= 2 else None
             trends.append(f"over {NAMES[base]} {gaps[0][1][0]:+,.0f} → {gaps[-1][1][0]:+,.0f} "
                           f"({GROWTH[result]})")
     minutes = statistics.median(r["budget_s"] for r in mine) / 60

@@ -430,7 +430,6 @@ def judge(result: dict) -> list[str]:
     return why
 
 
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--minutes", type=float, default=30.0, help="the chaos window")

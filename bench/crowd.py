@@ -265,10 +265,10 @@ def report(args, child: dict, probe: dict, rss: list[int], cores: dict[str, floa
     text = json.dumps(provenance.stamp(result, args.record), indent=1)
     (args.out / "results.json").write_text(text)
     if args.save:
-        DATA.mkdir(parents=True, exist_ok=True)
-        (DATA / f"{args.env_id}__{args.actors}actors{'__flood' if args.flood else ''}.json"
-         ).write_text(text)
-        provenance.written(DATA)
+        kept = DATA / f"{args.env_id}__{args.actors}actors{'__flood' if args.flood else ''}.json"
+        kept.parent.mkdir(parents=True, exist_ok=True)
+        kept.write_text(text)
+        provenance.written(kept)
     a = result["per_actor_fragments_per_s"]
     print(f"[crowd] {args.actors} actors{' + a flooder' if args.flood else ''}, "
           f"{args.seconds:g} s: {result['fragments_per_s']:,.0f} fragments/s acknowledged "

@@ -101,8 +101,7 @@ def run_one(args, env_id: str, algo: str, seed: int, flags: list[str] = ()) -> d
         wall_s = cluster_wall_s(run_dir)
     result.update(env_id=env_id, algo=algo, seed=seed, total_steps=args.steps,
                   overrides=list(args.set) + list(flags), wall_s=round(wall_s, 1),
-                  sps=round(result["steps"] / wall_s, 1), exit_code=code,
-                  code=provenance.short(record), cpus=os.cpu_count())
+                  sps=round(result["steps"] / wall_s, 1), exit_code=code, cpus=os.cpu_count())
     if args.eval_episodes:
         result["eval"] = evaluate(run_dir, args.eval_episodes, 10_000 + seed)
     save_json(path, provenance.stamp(result, record))

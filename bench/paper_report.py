@@ -12,7 +12,8 @@ import statistics
 from pathlib import Path
 
 import numpy as np
-from runs import ROOT  # noqa: I001  (bench/ is on sys.path)
+import provenance  # noqa: I001  (bench/ is on sys.path)
+from runs import ROOT
 
 from tpdeb.services.plot import band, label_axes, save, smooth
 
@@ -320,11 +321,10 @@ def figure(results: list[dict], env_id: str, algos: list[str], path: Path) -> No
 
 def replace_between(doc: Path, begin: str, end: str, text: str) -> bool:
     """Put `text` between the markers `begin` and `end` of `doc`; False where it has none."""
-    if not doc.exists() or begin not in doc.read_text():
+    new = provenance.replace_block(doc.read_text(), begin, end, text) if doc.exists() else None
+    if new is None:
         return False
-    head, rest = doc.read_text().split(begin, 1)
-    tail = rest.split(end, 1)[1] if end in rest else ""
-    doc.write_text(f"{head}{begin}\n{text}\n{end}{tail}")
+    doc.write_text(new)
     return True
 
 

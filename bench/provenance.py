@@ -78,12 +78,17 @@ def code_state(cwd: Path | None = None, keep_diff: bool = True) -> dict:
         if keep_diff and len(diff.encode()) <= DIFF_KEEP_BYTES:
             # staged under bench/out/ (not kept); `written` copies it beside the data when a
             # data file naming it lands under docs/data/
-            staged = ROOT / "bench" / "out" / "diffs" / f"{digest[:16]}.diff"
+            staged = staged_diff(f"{digest[:16]}.diff")
             if not staged.exists():
                 staged.parent.mkdir(parents=True, exist_ok=True)
                 staged.write_text(diff)
             state["diff_file"] = f"docs/data/diffs/{digest[:16]}.diff"
     return state
+
+
+def staged_diff(name: str) -> Path:
+    """Where a run's diff waits (bench/out/, not kept) until its data file lands."""
+    return ROOT / "bench" / "out" / "diffs" / name
 
 
 def commit_date(sha: str, cwd: Path | None = None) -> str | None:
@@ -155,11 +160,8 @@ def stamp(result: dict, record: dict) -> dict:
 
 def commit_of(data: dict) -> str:
     """The commit a data file's run began on, short ('1a2b3c4', '-dirty' where its record says
-    so): from its provenance (recorded or inferred), else what the file says, else '?'."""
-    record = data.get(FIELD)
-    if isinstance(record, dict) and record.get("commit"):
-        return short(record)
-    return data.get("code") or "?"
+    so; '?' without one), from its provenance (recorded or inferred)."""
+    return short(data.get(FIELD))
 
 
 def short(record: dict | None) -> str:
@@ -186,10 +188,6 @@ def add_verdict(result: dict, rule: str, version: int, passed: bool, reasons: li
         verdict["details"] = details
     result.setdefault("verdicts", []).append(verdict)
     return verdict
-
-
-def latest_verdict(result: dict) -> dict | None:
-    return (result.get("verdicts") or [None])[-1]
 
 
 # ----------------------------------------------------------------------------- inference
@@ -292,16 +290,15 @@ def infer(path: Path, data: dict, commits: list[tuple[int, str]]) -> dict:
         record["why"] = "no commit before the run's start"
         return record
     commit = before[-1]
-    code = data.get("code")
+    code = data.get("code")  # what files made before the record said: HEAD when the run ended
     if isinstance(code, str) and code:
-        ended_on = git("rev-parse", "--verify", "--quiet",
-                       code.removesuffix("-dirty") + "^{commit}")
-        if ended_on and ended_on.strip() in before:
-            # a run cannot start on a commit made after the one it ended on
-            ended_t = next(t for t, sha in commits if sha == ended_on.strip())
-            if ended_t < next(t for t, sha in commits if sha == commit):
-                commit = ended_on.strip()
-                basis += f", bounded by the commit recorded at its end ({code})"
+        ended_on = (git("rev-parse", "--verify", "--quiet",
+                        code.removesuffix("-dirty") + "^{commit}") or "").strip()
+        # a run cannot start on a commit made after the one it ended on (`before` is in time
+        # order, so an earlier index is an earlier commit)
+        if ended_on in before and before.index(ended_on) < len(before) - 1:
+            commit = ended_on
+            basis += f", bounded by the commit recorded at its end ({code})"
     record.update(status="inferred", commit=commit, commit_date=commit_date(commit),
                   basis=f"last commit before {basis}")
     if isinstance(code, str) and code.endswith("-dirty"):
@@ -434,16 +431,16 @@ def page_counts(page: str, paths: list[Path]) -> tuple[Counter, list[str]]:
 
 
 def page_block(page: str, paths: list[Path]) -> str:
+    """The line under a page's title that counts its data files by provenance."""
     counts, unknown = page_counts(page, paths)
     total = sum(counts.values())
-    text = (f"*Provenance of this page's {total} data files (`docs/data/`: "
+    return (f"*Provenance of this page's {total} data files (`docs/data/`: "
             f"{', '.join(f'`{p}`' for p in PAGES[page])}): {counts['recorded']} record the "
             f"commit, tree and machine they were made on; {counts['inferred']} were made before "
             f"that record existed and carry the commit inferred from their start "
             f"(`\"status\": \"inferred\"`: the last commit before it); {counts['unknown']} "
             f"unknown" + (f" ({', '.join(unknown)})" if unknown else "") + ". "
             "`python bench/provenance.py --check` lists each.*")
-    return f"{BEGIN}\n{text}\n{END}"
 
 
 GRID = "paper/"  # the comparison grid, whose commits RESULTS tabulates
@@ -486,42 +483,45 @@ def tree_text(data: dict) -> str:
     return "dirty when it ended" if record.get("dirty_at_end") else "not known"
 
 
-def stale_pages(paths: list[Path]) -> list[str]:
-    """Pages whose provenance block is missing or says other counts than the files."""
-    stale = []
-    for page in PAGES:
-        text = (ROOT / page).read_text()
-        if page_block(page, paths) not in text:
-            stale.append(page)
-    grid = f"{GRID_BEGIN}\n{commit_table(paths)}\n{GRID_END}"
-    if GRID_RESULTS not in stale and grid not in (ROOT / GRID_RESULTS).read_text():
-        stale.append(GRID_RESULTS)
-    return stale
-
-
-def replace_block(text: str, begin: str, end: str, block: str) -> str | None:
-    """`text` with what lies between `begin` and `end` (markers included) made `block`; None
-    where the markers are not there."""
+def replace_block(text: str, begin: str, end: str, inner: str) -> str | None:
+    """`text` with `inner` between the markers `begin` and `end` (what lay between them gone);
+    None where `begin` is not in it."""
     if begin not in text:
         return None
-    head, _, rest = text.partition(begin)
-    return head + block + rest.partition(end)[2]
+    head, rest = text.split(begin, 1)
+    tail = rest.split(end, 1)[1] if end in rest else ""
+    return f"{head}{begin}\n{inner}\n{end}{tail}"
+
+
+def rendered_pages(paths: list[Path]) -> dict[str, str]:
+    """Each page's text as the files say it should read: its count under the title (put there
+    when the page has none yet) and, on RESULTS, the grid's commit table."""
+    pages = {}
+    for page in PAGES:
+        text = (ROOT / page).read_text()
+        block = page_block(page, paths)
+        new = replace_block(text, BEGIN, END, block)
+        if new is None:
+            title, _, rest = text.partition("\n")
+            new = f"{title}\n\n{BEGIN}\n{block}\n{END}\n{rest}"
+        if page == GRID_RESULTS:
+            new = replace_block(new, GRID_BEGIN, GRID_END, commit_table(paths)) or new
+        pages[page] = new
+    return pages
+
+
+def stale_pages(paths: list[Path]) -> list[str]:
+    """Pages whose counts (or commit table) differ from what the files say."""
+    return [page for page, new in rendered_pages(paths).items()
+            if new != (ROOT / page).read_text()]
 
 
 def write_pages(paths: list[Path]) -> list[str]:
+    """Bring every stale page up to date; the pages changed."""
     changed = []
-    for page in PAGES:
-        path = ROOT / page
-        text, block = path.read_text(), page_block(page, paths)
-        new = replace_block(text, BEGIN, END, block)
-        if new is None:  # after the title
-            head, _, rest = text.partition("\n")
-            new = f"{head}\n\n{block}\n{rest}"
-        if page == GRID_RESULTS:
-            new = replace_block(new, GRID_BEGIN, GRID_END,
-                                f"{GRID_BEGIN}\n{commit_table(paths)}\n{GRID_END}") or new
-        if new != text:
-            path.write_text(new)
+    for page, new in rendered_pages(paths).items():
+        if new != (ROOT / page).read_text():
+            (ROOT / page).write_text(new)
             changed.append(page)
     return changed
 
@@ -537,7 +537,7 @@ def keep_diff(path: Path) -> None:
     if not name:
         return
     kept = ROOT / name
-    staged = ROOT / "bench" / "out" / "diffs" / kept.name
+    staged = staged_diff(kept.name)
     if not kept.exists() and staged.is_file():
         kept.parent.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(staged, kept)
@@ -551,8 +551,7 @@ def written(path: Path) -> None:
         Path(path).resolve().relative_to(DATA.resolve())
     except ValueError:
         return
-    for kept in [path] if Path(path).is_file() else sorted(Path(path).rglob("*.json")):
-        keep_diff(kept)
+    keep_diff(path)
     changed = write_pages(data_files())
     if changed:
         print(f"provenance: counts updated in {', '.join(changed)}", flush=True)
@@ -569,7 +568,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--data", type=Path, help=argparse.SUPPRESS)  # tests: another data dir
     p.add_argument("-q", "--quiet", action="store_true", help="only the counts and problems")
     args = p.parse_args(argv)
-    paths = data_files(args.data or DATA)
+    paths = data_files(args.data)
     if args.infer:
         counts = backfill(paths)
         print(f"provenance: {sum(counts.values())} files given a record: "
@@ -587,6 +586,10 @@ def main(argv: list[str] | None = None) -> int:
         f"{counts[s]} {s}" for s in STATUSES) + f"; {len(bad)} without a record")
     for line in bad:
         print(f"  NO PROVENANCE: {line}")
+    if bad:
+        print("  (a file made before the record existed: python bench/provenance.py --infer; a "
+              "missing diff: it is copied from bench/out/diffs/ when its bench writes the file, "
+              "so run the bench again or restore docs/data/diffs/)")
     stale = stale_pages(paths) if args.data is None else []
     for page in stale:
         print(f"  STALE: {page}'s provenance counts differ from the files "

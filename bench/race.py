@@ -129,7 +129,7 @@ def run_budgeted(env_id: str, seed: int, budget_s: float, extra: list[str], run_
     return {"env_id": env_id, "seed": seed, "budget_s": budget_s, "train_s":
             end["train_elapsed_s"], "wall_s": round(wall_s, 1), "steps": end["global_step"],
             "episodes": on_the_clock(read_run_metrics(run_dir)), "marks": marks,
-            "code": provenance.short(record), "provenance": record}
+            "provenance": record}
 
 
 def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
@@ -169,7 +169,7 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
         return None
     result = json.loads(peer.read_text())
     peer.unlink()
-    result.update(code=provenance.short(record), provenance=record)
+    result["provenance"] = record
     return result
 
 

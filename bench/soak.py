@@ -181,9 +181,14 @@ def verdict(results: dict) -> dict:
             "table_markdown": render(summary, results["restarts"], tolerance)}
 
 
-def add_verdict(results: dict, judged: dict, note: str = "") -> dict:
+def add_verdict(results: dict, judged: dict, rejudged: bool) -> dict:
+    """Today's rule's verdict beside the file's others. The run's own verdict's summary and
+    table are the file's `summary` and `table_markdown`; a later one keeps its own."""
+    if not rejudged:
+        return provenance.add_verdict(results, RULE, RULE_VERSION, judged["result"] == "PASS",
+                                      judged["reasons"], note="the run's own")
     return provenance.add_verdict(results, RULE, RULE_VERSION, judged["result"] == "PASS",
-                                  judged["reasons"], note=note,
+                                  judged["reasons"], note="judged again from the saved series",
                                   details={"summary": judged["summary"],
                                            "table_markdown": judged["table_markdown"]})
 
@@ -268,7 +273,7 @@ def rejudge(path: Path, png: Path | None, parser) -> int:
         say(f"{done[-1]['verdict']} by rule version {RULE_VERSION}, already in {path}; "
             "nothing written")
     else:
-        add_verdict(results, judged, note="judged again from the saved series")
+        add_verdict(results, judged, rejudged=True)
         path.write_text(json.dumps(results, indent=1))
         provenance.written(path)
         say(f"{judged['result']} by rule version {RULE_VERSION}"
@@ -427,7 +432,7 @@ def main() -> int:
     results.update(summary=judged["summary"], result=judged["result"],
                    table_markdown=judged["table_markdown"])
     provenance.stamp(results, record)
-    add_verdict(results, judged)
+    add_verdict(results, judged, rejudged=False)
     failed, table = failing(judged["summary"]), judged["table_markdown"]
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)

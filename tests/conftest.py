@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from tests.figures import Keeper
 from tests.procs import Procs, free_port, pids_with
 
 
@@ -16,6 +17,13 @@ def procs(tmp_path):
     p.stop_all()
     assert not p.leftovers(), "a service outlived its test"
     assert not pids_with(str(tmp_path)), "a service process outlived its test"
+
+
+@pytest.fixture
+def figures(request) -> Keeper:
+    """Keeps a test's measured figures as data where TPDEB_KEEP_FIGURES names a folder, with
+    the run's provenance taken now, as the test begins."""
+    return Keeper(request.node.nodeid)
 
 
 @pytest.fixture

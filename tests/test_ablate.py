@@ -137,7 +137,8 @@ def made_up(level: float, seed: int, clock_rate: float = 2_000.0,
     curve = [[s, level * s / 1_000_000 + seed] for s in range(0, 1_000_001, 10_000)]
     return {"final_return": level + seed, "eval": {"mean_return": level + seed + 100},
             "curve": curve, "policy_loss": [[s, -s * 1e-8] for s, _ in curve],
-            "clock": [[s, s / clock_rate] for s, _ in curve], "wall_s": 500.0, "code": "abc1234",
+            "clock": [[s, s / clock_rate] for s, _ in curve], "wall_s": 500.0,
+            "provenance": {"status": "recorded", "commit": "abc1234" + "0" * 33},
             "diagnostics": {"perf/update_ms": update_ms}}
 
 

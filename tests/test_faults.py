@@ -10,7 +10,6 @@ import time
 
 import pytest
 
-from tests.figures import keep_figures
 from tests.procs import free_port, service_pid
 from tests.test_services import next_stats, watch_stats
 from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode
@@ -74,7 +73,7 @@ def stored_state(run_dir, spec_env=ENV):
 
 
 def test_replay_killed_with_sigkill_loses_no_acknowledged_fragment(
-        procs, endpoint, session, tmp_path):
+        procs, endpoint, session, tmp_path, figures):
     run_dir = tmp_path / "run"
     keys = Keys("t")
     common = ["--run-id", "t", "--env-id", ENV, "--num-envs", "2", "--total-timesteps", "24000",
@@ -118,7 +117,7 @@ def test_replay_killed_with_sigkill_loses_no_acknowledged_fragment(
     print(f"replay kill -9: {len(acked_before)} fragments acknowledged before, all present; "
           f"first ack {recovered - killed_at:.1f} s after the kill; "
           f"{ledger['duplicates']} resends recognised")
-    keep_figures("replay-kill9", {"acknowledged_before": len(acked_before), "lost": 0,
+    figures.keep("replay-kill9", {"acknowledged_before": len(acked_before), "lost": 0,
                                   "first_ack_after_s": round(recovered - killed_at, 2),
                                   "resends_recognised": ledger["duplicates"]})
 
@@ -193,7 +192,7 @@ def non_decreasing(values) -> bool:
 
 @pytest.mark.slow
 def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_router(
-        procs, tmp_path):
+        procs, tmp_path, figures):
     run_dir = tmp_path / "run"
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     cluster_file = tmp_path / "cluster.toml"
@@ -268,6 +267,6 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
     assert sum(ledger["ingested"] for ledger in state["ledgers"].values()) == inserted
     print("recovery after kill -9 (s): " + ", ".join(f"{k} {v:.1f}" for k, v in recovery.items())
           + f"; {len(acked_before)} acknowledged fragments before the replay kill, all present")
-    keep_figures("cluster-kill9", {"recovery_s": {k: round(v, 2) for k, v in recovery.items()},
+    figures.keep("cluster-kill9", {"recovery_s": {k: round(v, 2) for k, v in recovery.items()},
                                    "acknowledged_before_replay_kill": len(acked_before),
                                    "lost": 0, "versions_monotone": True})

@@ -25,7 +25,6 @@ import time
 
 import pytest
 
-from tests.figures import keep_figures
 from tests.netns import Namespaces, run, unavailable
 from tests.procs import ROOT
 
@@ -116,7 +115,7 @@ CUTS = {
 
 
 @pytest.mark.parametrize("cut", CUTS)
-def test_training_recovers_from_a_network_partition(spaces, tmp_path, cut):
+def test_training_recovers_from_a_network_partition(spaces, tmp_path, cut, figures):
     core, edge = spaces.a, spaces.b
     cut_link, restore_link = CUTS[cut]
     if cut == "blackhole":
@@ -213,7 +212,7 @@ def test_training_recovers_from_a_network_partition(spaces, tmp_path, cut):
     def since(event, start: float) -> float | None:
         return round(event["t"] - start, 2) if event else None
 
-    keep_figures(f"partition-{cut}", {
+    figures.keep(f"partition-{cut}", {
         "cut": cut, "partition_s": round(partition_s, 2), "frozen_step": frozen_step,
         "token_dropped_after_cut_s": since(lost, cut_at),
         "from_link_return_s": {"actor_token_back": since(reconnect, restored_at),

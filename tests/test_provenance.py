@@ -127,7 +127,7 @@ def test_a_verdict_is_added_beside_the_earlier_one_never_in_its_place():
     assert [(v["rule_version"], v["verdict"]) for v in result["verdicts"]] == [
         (1, "FAIL"), (2, "PASS")]
     assert result["verdicts"][0]["reasons"] == ["drift 6 % > 5 %"]
-    assert provenance.latest_verdict(result)["verdict"] == "PASS"
+    assert result["verdicts"][-1]["verdict"] == "PASS"
 
 
 def test_a_data_file_written_brings_the_pages_counts_with_it(repo):
@@ -145,3 +145,19 @@ def test_a_data_file_written_brings_the_pages_counts_with_it(repo):
     assert provenance.stale_pages(provenance.data_files()) == []
     assert "this page's 1 data files" in (repo / "docs" / "ABLATIONS.md").read_text()
     provenance.written(repo / "elsewhere.json")  # outside docs/data: nothing to follow
+
+
+def test_a_tests_figures_are_kept_only_when_asked_with_the_record_of_its_start(
+        repo, tmp_path, monkeypatch):
+    from tests.figures import Keeper
+
+    commit(repo, "code.py", "a\n", 1_700_000_000)
+    monkeypatch.delenv("TPDEB_KEEP_FIGURES", raising=False)
+    assert Keeper("t::x").keep("recovery", {"s": 1.0}) is None
+    monkeypatch.setenv("TPDEB_KEEP_FIGURES", str(tmp_path / "kept"))
+    keeper = Keeper("t::x")  # as the test begins
+    started = keeper.record["started_at"]
+    kept = json.loads(keeper.keep("recovery", {"s": 1.0}).read_text())
+    assert kept["test"] == "recovery" and kept["s"] == 1.0
+    assert kept["provenance"]["started_at"] == started
+    assert kept["provenance"]["command"][-1] == "t::x" and provenance.problem(kept) is None

@@ -68,7 +68,8 @@ def test_the_grid_resumes_where_it_stopped(tmp_path, monkeypatch):
 def made_up(system: str, link: float, seed: int, level: float) -> dict:
     episodes = [(t, 1000 * t, level * t / 600 + seed) for t in range(1, 601, 5)]
     return {"env_id": "HalfCheetah-v5", "system": system, "link": link, "seed": seed,
-            "budget_s": 600.0, "steps": 600_000, "episodes": episodes, "code": "abc1234",
+            "budget_s": 600.0, "steps": 600_000, "episodes": episodes,
+            "provenance": {"status": "recorded", "commit": "abc1234" + "0" * 33},
             "marks": {"600": {"train_return": level + seed, "eval": {"mean_return": level}}},
             "up_bytes_per_step": 40.0, "down_bytes_per_step": 3.0, "lag": 2.0,
             # the learner's side: the band replays 4× as much and waits less
