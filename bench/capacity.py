@@ -14,8 +14,8 @@ measured on this machine with synthetic actors instead of environments.
    (`persist`, acknowledged once on disk) and without. CPU per second of the replay and router.
 2. Router forwarding ceiling: the same synthetic senders publishing to a counting subscriber
    through the router alone (no replay, no acks): fragments/s forwarded.
-3. Learner update ceiling per network size (64×64, 256×256): `Learner.step` updates/s at one
-   torch thread, and the env steps/s that feeds at the preset's replay ratio.
+3. Learner update ceiling per network size (64×64, 256×256): the compiled update's updates/s at
+   one torch thread, and the env steps/s that feeds at the preset's replay ratio.
 4. One actor's acting rate per task (4 envs, its policy in numpy, one core).
 
 Prints the figures and the plan (actors of each task one replay and one learner can feed);

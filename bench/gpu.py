@@ -3,9 +3,9 @@
     python bench/gpu.py                      # ≤ 8 minutes, on a machine with a CUDA GPU
     python bench/gpu.py --device cpu --seconds 1 --cluster-seconds 15 --actors 1 2  # a smoke run
 
-1. `Learner.step` on HalfCheetah-v5 batches (the preset's 8 fragments × 64 steps) with 64×64,
-   256×256 and 1024×1024 networks: updates/s on the device, and on the CPU at 1 torch thread
-   and at every core.
+1. The learner's compiled update, as the service runs it, on HalfCheetah-v5 batches (the
+   preset's 8 fragments × 64 steps) with 64×64, 256×256 and 1024×1024 networks: updates/s on
+   the device, and on the CPU at 1 torch thread and at every core.
 2. `tpdeb-cluster` on HalfCheetah-v5 (its preset, the learner on the device) with 1, 2, 4, 8 and
    14 actors × 4 envs (and 14 again with the learner on the CPU, for comparison), each trained
    for `--cluster-seconds` (`--train-for-seconds`): env steps/s
@@ -32,11 +32,9 @@ from pathlib import Path
 import provenance
 import torch
 from procfs import CpuSampler, cmdline, descendants, service_name
-from throughput import preset_config, sample_batches, timed_loop
+from throughput import bench_learner, preset_config, sample_batches
 
 from tpdeb.services.device import describe, resolve_device
-from tpdeb.services.net.model_wire import model_for
-from tpdeb.tpdeb_core.learner import Learner
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "gpu"
@@ -51,22 +49,9 @@ def machine(device: torch.device) -> dict:
 
 def updates_per_s(spec, config, fragments, batches, device, threads: int,
                   seconds: float) -> float:
-    torch.set_num_threads(threads)
-    torch.manual_seed(config.seed)
-    learner = Learner(model_for(spec), config.loss_config(), device)
-    for fragment in fragments:
-        learner.observe(fragment)
-    b = config.batch_fragments
-    keys, weights = list(range(b)), torch.ones(b).numpy()
-    from_prioritized = (torch.arange(b) < round(config.zeta * b)).numpy()
-    state = {"i": 0}
-
-    def step():
-        state["i"] += 1
-        learner.step(batches[state["i"] % len(batches)], keys, weights, from_prioritized)
-
-    calls, elapsed = timed_loop(step, seconds)
-    return calls / elapsed
+    """The learner's compiled update as the service runs it (bench/throughput.py)."""
+    return bench_learner(config, spec, fragments, batches, seconds, device, threads)[
+        "updates_per_s"]
 
 
 def learner_rates(args, device) -> list[dict]:

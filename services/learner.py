@@ -48,6 +48,7 @@ from tpdeb.protocol import (
     encode,
 )
 from tpdeb.services.budget import Budget, clock
+from tpdeb.services.compiled import BackgroundCompile
 from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import LearnerServiceConfig
@@ -73,7 +74,7 @@ from tpdeb.services.store.checkpoint import (
 )
 from tpdeb.services.store.diskio import DiskGuard
 from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
-from tpdeb.tpdeb_core.learner import Learner
+from tpdeb.tpdeb_core.learner import Batch, Learner, place
 from tpdeb.tpdeb_core.model import state_arrays
 
 PROG = "tpdeb-learner"
@@ -90,6 +91,7 @@ class LearnerService:
         seed_everything(config.seed)
         self.model = model_for(spec)
         self.device = resolve_device(config.device)
+        self.pin = self.device.type != "cpu"
         try:  # the run spec's model against this learner's loss settings
             self.learner = Learner(self.model, config.loss_config(), self.device)
         except ValueError as exc:
@@ -117,7 +119,7 @@ class LearnerService:
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self._writers()
         self.log_bad = rate_limited(log)
-        self.batches: queue.Queue[SampleReply] = queue.Queue(maxsize=config.requests_in_flight)
+        self._pipeline()
         self.stats_inbox: queue.Queue = queue.Queue()
         self.replay_stats: dict = {}
         self.link_stats: dict = {}
@@ -137,6 +139,17 @@ class LearnerService:
         self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
         self.params_lock = threading.Lock()
         self._declare()
+
+    def _pipeline(self) -> None:
+        """The batches' queue, the compiled update and the priorities waiting to go."""
+        # (the reply, its batch placed on the device): fetch threads decode and place the next
+        # batches while an update runs
+        self.batches: queue.Queue[tuple[SampleReply, Batch]] = queue.Queue(
+            maxsize=self.config.requests_in_flight)
+        self.compiler = (BackgroundCompile(self.learner) if self.config.compile == "auto"
+                         else None)
+        self.compiled = False
+        self.pending: tuple | None = None  # a batch's priorities not yet sent
 
     def _writers(self) -> None:
         """The run dir's writers, each of which a full disk costs writes, not the run."""
@@ -298,9 +311,11 @@ class LearnerService:
             if batch is None:
                 self.stop.wait(0.02)  # replay absent or rate-limited: do not spin
                 continue
+            placed = place(batch.batch, batch.weights, batch.step_weights, self.device,
+                           self.pin)
             while not self.stop:
                 try:
-                    self.batches.put(batch, timeout=0.1)
+                    self.batches.put((batch, placed), timeout=0.1)
                     break
                 except queue.Full:
                     pass
@@ -350,7 +365,7 @@ class LearnerService:
                 batch = None
             self.wait_s += time.perf_counter() - waited
             if batch is not None:
-                self.train_on(batch)
+                self.train_on(*batch)
             self.serve_params()
             self.drain_stats()
             now = time.monotonic()
@@ -371,27 +386,27 @@ class LearnerService:
         self.log_progress((self.global_step - first_step) / max(elapsed, 1e-9))
         return finished
 
-    def train_on(self, batch: SampleReply) -> None:
+    def train_on(self, batch: SampleReply, placed: Batch | None = None) -> None:
+        """One update on a sample reply (`placed`: its batch on the device already)."""
         cfg = self.config
         for rms, moments in ((self.model.obs_rms, batch.obs_moments),
                              (self.model.ret_rms, batch.ret_moments)):
             if moments is not None:
                 rms.merge(moments.count, moments.mean, moments.m2)
         self.follow_schedules()
+        if placed is None:
+            placed = place(batch.batch, batch.weights, batch.step_weights, self.device, self.pin)
         fragments = batch.batch  # the FragmentBatch as decoded
         version = self.param_version()  # of the parameters this update starts from
         started = time.perf_counter()
-        result = self.learner.step(fragments, batch.keys, batch.weights, batch.from_prioritized,
-                                   batch.step_weights)
+        norm = self.learner.normaliser()
+        priorities = self.learner.update(placed, norm)
+        self.send_priorities((batch.keys, batch.from_prioritized, priorities))
         self.update_s += time.perf_counter() - started
-        if len(result.priority_keys):
-            self.priorities_publisher.put(encode(PriorityUpdate(
-                keys=np.asarray(result.priority_keys, np.int64),
-                priorities=np.asarray(result.priorities, np.float64))))
+        if self.compiler is not None and not self.compiled:
+            self.prepare_compiled(placed, norm)
         if self.learner.updates % cfg.params_publish_interval == 0:
             self.publish_params()
-        for key, value in result.metrics.items():
-            self.sums[key] = self.sums.get(key, 0.0) + value
         ages = (version - fragments.policy_version).tolist()
         self.sums["replay/sample_age_updates"] = self.sums.get("replay/sample_age_updates", 0.0) \
             + float(np.mean(ages))
@@ -410,6 +425,41 @@ class LearnerService:
             self.trained_floor = max(self.trained_keys) - 2 * self.replay_items
             self.trained_keys = {k for k in self.trained_keys if k > self.trained_floor}
         self.count += 1
+
+    def send_priorities(self, new: tuple | None) -> None:
+        """The new priorities of a batch's prioritized samples, to the replay. On the CPU they
+        are at hand when the update returns and leave at once; on an accelerator they are
+        copied out without waiting (into pinned memory) and sent after the next update, by
+        when the copy is done, so the host never stalls the device. None: send what waits."""
+        ready, self.pending = self.pending, None
+        if new is not None and self.device.type == "cpu":
+            ready, new = new, None
+        if new is not None:
+            keys, chosen, priorities = new
+            copied = torch.cuda.Event()
+            host = priorities.to("cpu", non_blocking=True)
+            copied.record()
+            self.pending = (keys, chosen, host, copied)
+        if ready is None:
+            return
+        keys, chosen, priorities = ready[:3]
+        if len(ready) == 4:
+            ready[3].synchronize()
+        idx = np.flatnonzero(chosen)
+        if len(idx):
+            self.priorities_publisher.put(encode(PriorityUpdate(
+                keys=np.asarray(keys, np.int64)[idx],
+                priorities=priorities.numpy()[idx].astype(np.float64))))
+
+    def prepare_compiled(self, placed: Batch, norm: torch.Tensor) -> None:
+        """Start compiling the update after the first one (on its batch), and switch to it
+        between two updates once it is ready."""
+        compiler = self.compiler
+        if compiler.thread is None:
+            compiler.start(placed, norm)
+        elif compiler.ready():
+            self.compiled = True
+            compiler.install()
 
     def follow_schedules(self) -> None:
         """The learning rate and the log-std ceiling where they are annealed, at the run's
@@ -467,11 +517,12 @@ class LearnerService:
 
     def log_progress(self, sps: float) -> None:
         values = {"charts/SPS": sps,
-                  "charts/learning_rate": self.learner.optimizer.param_groups[0]["lr"],
+                  "charts/learning_rate": self.learner.learning_rate(),
                   "perf/updates": self.learner.updates,
                   "perf/param_version": self.param_version(),
                   "perf/train_elapsed_s": self.budget.elapsed()}
         if self.count:
+            values.update(self.learner.read_metrics())  # the device's sums, read once
             values.update({k: v / self.count for k, v in self.sums.items()})
             values["perf/update_ms"] = 1e3 * self.update_s / self.count
         if self.checkpoints_written:
@@ -514,6 +565,7 @@ class LearnerService:
 
     def finish(self, finished: bool) -> None:
         # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
+        self.send_priorities(None)  # the last batch's, where they wait a turn
         path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
         if self.learner.updates:
             self.write_policy()
@@ -574,7 +626,9 @@ def main(argv: list[str] | None = None) -> int:
         # The learner shares the machine with actors and the replay server: more intra-op
         # threads than it is given cores makes every update slower, not faster.
         torch.set_num_threads(config.torch_threads)
-        # A bad --resume PATH fails here, before any network wait.
+        # A device this machine lacks or a bad --resume PATH fails here, before any network
+        # wait.
+        resolve_device(config.device)
         resume = choose_resume(config.resume, config.default_run_dir(),
                                lambda line: log.info(line))
         session = open_for(config)

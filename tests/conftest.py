@@ -2,10 +2,16 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 
 from tests.figures import Keeper
 from tests.procs import Procs, free_port, pids_with
+
+# Learners in tests run their update eagerly: each would otherwise compile it in the background,
+# seconds of CPU that the suite's two cores need. The tests of the compiled update ask for it.
+os.environ.setdefault("TPDEB_COMPILE", "off")
 
 
 @pytest.fixture

@@ -133,7 +133,7 @@ def test_the_log_std_ceiling_falls_with_the_run_and_needs_the_global_log_std(tmp
     finally:
         close(service)
     with pytest.raises(ConfigError, match="anneal_log_std=true holds the global log-std"):
-        LearnerServiceConfig(anneal_log_std=True, policy_std="state", loss_impl="autograd")
+        LearnerServiceConfig(anneal_log_std=True, policy_std="state")
 
 
 def test_cluster_stops_on_time_and_exits_0(procs, tmp_path):

@@ -52,7 +52,7 @@ def config_for(run_dir, **extra) -> LearnerServiceConfig:
 
 def spec_for(obs_dim=4, act_dim=1, env_id=ENV, hidden_sizes=(64, 64), policy_std="global"):
     config = LearnerServiceConfig(env_id=env_id, hidden_sizes=hidden_sizes,
-                                  policy_std=policy_std, loss_impl="autograd")
+                                  policy_std=policy_std)
     return run_spec(config, obs_dim, act_dim, -np.ones(act_dim), np.ones(act_dim))
 
 
@@ -278,8 +278,7 @@ def test_a_checkpoint_from_before_the_policy_setting_loads_and_another_policy_is
     assert restored.learner.updates == 5
     close(restored)
     with pytest.raises(ConfigError) as refused:
-        service_for(tmp_path, resume_from=resume, spec=spec_for(policy_std="state"),
-                    loss_impl="autograd")
+        service_for(tmp_path, resume_from=resume, spec=spec_for(policy_std="state"))
     line = str(refused.value)
     assert "\n" not in line and "global log-std" in line and "--policy-std global" in line
 

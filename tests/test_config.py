@@ -196,10 +196,19 @@ def test_a_password_comes_from_a_secret_file_and_no_copy_of_the_config_keeps_it(
         NetConfig(user="actor-0", password_file=str(tmp_path / "missing"))
 
 
-def test_a_closed_form_loss_with_a_state_dependent_std_is_refused_at_start_naming_what_to_do():
-    with pytest.raises(ConfigError, match="policy_std='state': set loss_impl=autograd"):
-        TrainConfig(policy_std="state")
-    assert TrainConfig(policy_std="state", loss_impl="autograd").policy_std == "state"
+def test_a_removed_setting_is_refused_in_one_line_naming_what_replaced_it(tmp_path):
+    """loss_impl is gone (one loss, compiled): a flag, a variable, a file or --set that gives
+    it is told so, not merely "unknown"."""
+    settings = tmp_path / "old.toml"
+    settings.write_text('[loss]\nloss_impl = "closed_form"\n')
+    attempts = [(["--loss-impl", "autograd"], {}), ([], {"TPDEB_LOSS_IMPL": "closed_form"}),
+                (["--config", str(settings)], {})]
+    for argv, environ in attempts:
+        with pytest.raises(ConfigError) as refused:
+            resolve(TrainConfig, argv, "tpdeb-train", "", environ=environ)
+        line = str(refused.value)
+        assert "\n" not in line and "loss_impl was removed" in line and "compile" in line
+    assert TrainConfig(policy_std="state").policy_std == "state"  # one loss takes both stds
 
 
 def test_a_replay_ratio_band_reaches_the_limiter():

@@ -65,7 +65,8 @@ def test_the_learner_on_an_explicit_cpu_device_computes_the_same_update():
     assert explicit.device == default.device == torch.device("cpu")
     for a, b in zip(default.params, explicit.params, strict=True):
         torch.testing.assert_close(a, b, rtol=0, atol=0)
-    assert explicit.optimizer.step_count.device.type == "cpu" and default.updates == 3
+    step = explicit.optimizer.state[explicit.params[0]]["step"]
+    assert step.device.type == "cpu" and int(step) == default.updates == 3
 
 
 def test_the_learner_service_announces_its_device_and_eval_refuses_a_missing_gpu(
@@ -84,3 +85,21 @@ def test_the_learner_service_announces_its_device_and_eval_refuses_a_missing_gpu
         load_policy(checkpoint, None, "cuda")
     with pytest.raises(ConfigError, match="device='cuda': torch sees no CUDA device"):
         service_for(tmp_path / "other", device="cuda")
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="the machine has a GPU")
+def test_the_learner_refuses_a_missing_gpu_before_it_waits_for_a_router():
+    """`tpdeb-learner --device cuda` on a machine without one: one line at once, exit 2, not a
+    minute's wait for a router that is not there."""
+    import subprocess
+    import sys
+    import time
+
+    started = time.monotonic()
+    done = subprocess.run(
+        [sys.executable, "-m", "tpdeb.services.learner", "--device", "cuda", "--env-id",
+         "InvertedPendulum-v5", "--run-id", "x", "--connect", "tcp/127.0.0.1:1"],
+        capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and time.monotonic() - started < 30
+    (line,) = done.stderr.strip().splitlines()
+    assert "device='cuda'" in line and "no CUDA device" in line

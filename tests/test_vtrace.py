@@ -83,4 +83,5 @@ def test_the_doubling_scan_equals_the_backward_loop(steps):
     for t in range(steps - 1, -1, -1):
         acc = x[t] + decay[t] * acc
         expected[t] = acc
-    np.testing.assert_allclose(discounted_sums(x, decay), expected, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(discounted_sums(torch.from_numpy(x), torch.from_numpy(decay)),
+                               expected, rtol=1e-5, atol=1e-6)

@@ -3,12 +3,11 @@ processes that only read a run's configuration (router, link, launcher) need no 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 from tpdeb.tpdeb_core.replay import PRIORITY_MODES
 
 CLIP_ANCHORS = ("target", "behaviour")
-LOSS_IMPLS = ("autograd", "closed_form")
 
 
 @dataclass
@@ -73,9 +72,6 @@ class LossConfig(PriorityConfig):
     PPO's ratio π_θ/μ with V-trace toward the current policy (no target policy)"""
     vtrace_lambda: float = 1.0
     """λ of the V-trace traces c_t = λ·min(c̄, π/μ), like GAE's λ (1: plain V-trace)"""
-    loss_impl: str = "closed_form"
-    """autograd: the loss as written (tpdeb_core/loss.py), differentiated by torch | closed_form:
-    the same loss with its gradient derived by hand (faster; the global log-std only)"""
 
     def __post_init__(self):
         super().__post_init__()
@@ -85,32 +81,6 @@ class LossConfig(PriorityConfig):
             raise ValueError(f"clip_anchor={self.clip_anchor!r}: use one of {CLIP_ANCHORS}")
         if not 0.0 <= self.vtrace_lambda <= 1.0:
             raise ValueError(f"vtrace_lambda={self.vtrace_lambda}: must be in [0, 1]")
-        if self.loss_impl not in LOSS_IMPLS:
-            raise ValueError(f"loss_impl={self.loss_impl!r}: use one of {LOSS_IMPLS}")
         if not self.learning_rate > 0:
             raise ValueError(f"learning_rate={self.learning_rate}: must be > 0")
 
-
-# The loss settings whose every value `loss_impl = closed_form` implements. A setting added to the
-# loss (value clipping, return normalisation, …) is refused by the closed form at any value but
-# its default until its gradient is derived in tpdeb_core/closed_form.py and tests/test_loss.py
-# crosses it with the rest.
-CLOSED_FORM_SETTINGS = frozenset({
-    "gamma", "priority_mode", "priority_kappa", "rho_bar", "c_bar", "rho_pg_bar",
-    "rho_target_bar", "clip_coef", "kl_coef", "kl_target", "vf_coef", "ent_coef",
-    "max_grad_norm", "tau", "learning_rate", "adam_eps", "norm_adv", "clip_anchor",
-    "vtrace_lambda", "loss_impl"})
-
-
-def closed_form_refusal(config: LossConfig, policy_std: str) -> str | None:
-    """Why the closed form cannot compute this loss, naming the setting and what to do (None if
-    it can). Torch-free, so the configuration refuses at start what the learner would."""
-    if policy_std != "global":
-        return (f"loss_impl=closed_form implements the global log-std only, not "
-                f"policy_std={policy_std!r}: set loss_impl=autograd")
-    for f in fields(config):
-        value = getattr(config, f.name)
-        if f.name not in CLOSED_FORM_SETTINGS and value != f.default:
-            return (f"loss_impl=closed_form does not implement {f.name}={value!r}: set "
-                    "loss_impl=autograd")
-    return None

@@ -100,8 +100,8 @@ def mlp(sizes: Sequence[int], out_gain: float) -> nn.Sequential:
 
 
 def linear_layers(net: nn.Sequential) -> list[tuple[torch.Tensor, torch.Tensor]]:
-    """A network's (weight, bias) pairs, held once: walking the module tree on every update
-    costs more than the arithmetic at these sizes."""
+    """A network's (weight, bias) pairs, read from the modules at each call: under
+    `torch.func.functional_call` they are the tensors being differentiated."""
     return [(m.weight, m.bias) for m in net if isinstance(m, nn.Linear)]
 
 
@@ -117,7 +117,6 @@ class GaussianPolicy(nn.Module):
             raise ValueError(f"policy_std={policy_std!r}: use one of {policy.POLICY_STDS}")
         # Gain 0.01 starts every action near 0 with the full exploration of log_std.
         self.mean = mlp([obs_dim, *hidden, act_dim], out_gain=0.01)
-        self.layers = linear_layers(self.mean)
         self.policy_std = policy_std
         if policy_std == "global":
             self.log_std = nn.Parameter(torch.full((act_dim,), float(init_log_std)))
@@ -135,7 +134,7 @@ class GaussianPolicy(nn.Module):
 
     def forward(self, obs_norm: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """(mean, log-std); the global log-std is [A] and broadcasts against the mean."""
-        return policy.gaussian(self.layers, self.log_std_source, obs_norm, TORCH)
+        return policy.gaussian(linear_layers(self.mean), self.log_std_source, obs_norm, TORCH)
 
 
 class ActorCritic(nn.Module):
@@ -159,19 +158,17 @@ class ActorCritic(nn.Module):
         self.obs_dim, self.act_dim, self.obs_clip = obs_dim, act_dim, obs_clip
         self.policy = GaussianPolicy(obs_dim, act_dim, hidden, init_log_std, policy_std)
         self.value_net = mlp([obs_dim, *hidden, 1], out_gain=1.0)
-        self.value_layers = linear_layers(self.value_net)
         self.obs_rms = RunningMeanStd(obs_dim)
         self.ret_rms = RunningMeanStd(())
 
     @property
     def device(self) -> torch.device:
         """Where the networks are (the normalisers' moments always stay on the CPU)."""
-        return self.value_layers[0][0].device
+        return self.value_net[0].weight.device
 
     def to_device(self, device: torch.device | str) -> ActorCritic:
         """Move the networks (policy and value) to `device`; the normalisers stay where they
-        are, read and merged in numpy. The layers held for the update stay the same
-        parameters (moved in place)."""
+        are, read and merged in numpy."""
         self.policy.to(device)
         self.value_net.to(device)
         return self
@@ -195,7 +192,7 @@ class ActorCritic(nn.Module):
         return float(inverse_std(float(rms.count), rms.m2.numpy(), rms.epsilon))
 
     def value(self, obs_norm: torch.Tensor) -> torch.Tensor:
-        return policy.mlp(self.value_layers, obs_norm, TORCH).squeeze(-1)
+        return policy.mlp(linear_layers(self.value_net), obs_norm, TORCH).squeeze(-1)
 
     @torch.no_grad()
     def act(self, obs_raw: np.ndarray, generator: torch.Generator | None = None) -> dict:

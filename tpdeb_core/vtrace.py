@@ -1,18 +1,16 @@
-"""V-trace targets (Espeholt et al. 2018): step 1 of the learner loss.
+"""V-trace targets (Espeholt et al. 2018): step 1 of the learner loss, written once, in torch.
 
-The reverse recursion  a_s = ρ_s δ_s + γ_s c_s a_{s+1}  is a linear recurrence: it runs in
-numpy as a doubling scan, log2(T) rounds of whole-array operations (for the learner's [64, 8]
-batches ~12 µs against ~48 µs for a numpy loop over T; the [T, T, B] discount-product matrix in
-torch that this replaced took ~580 µs, measured on a loaded machine), exact at terminations
-(γ_k c_k = 0) with no division. `vtrace_terms` keeps a torch interface; the learner calls
-`vtrace_arrays`.
+The reverse recursion  a_s = ρ_s δ_s + γ_s c_s a_{s+1}  is a linear recurrence: it runs as a
+doubling scan, log2(T) rounds of whole-tensor operations instead of T steps of a loop, exact at
+terminations (γ_k c_k = 0) with no division. Every shape is static, so a compiled update fuses
+the rounds with the rest of the targets. The learner (`tpdeb_core/learner.py`) and `vtrace`, the
+public form, run this same code.
 """
 
 from __future__ import annotations
 
 from typing import NamedTuple
 
-import numpy as np
 import torch
 
 
@@ -23,48 +21,21 @@ class VTraceTerms(NamedTuple):
     deltas: torch.Tensor  # [T, B] δ_t = r_t + γ_t V(x_{t+1}) − V(x_t)
 
 
-def discounted_sums(x: np.ndarray, decay: np.ndarray) -> np.ndarray:
-    """a_s = x_s + decay_s · a_{s+1} backwards over axis 0 (a_T = 0), [T, B] in and out.
+def discounted_sums(x: torch.Tensor, decay: torch.Tensor) -> torch.Tensor:
+    """a_s = x_s + decay_s · a_{s+1} backwards over axis 0 (a_T = 0), [T, ...] in and out.
 
     A doubling scan (Hillis & Steele; Blelloch's form for linear recurrences): after the round
     with stride k, a_s holds the 2k terms Σ_{j<2k} (Π_{i<j} decay_{s+i}) x_{s+j} and g_s the
-    product of 2k decays, so log2(T) rounds of three array operations replace T steps of a
-    loop. Only products and sums: exact at terminations (decay 0)."""
-    a = np.array(x, dtype=np.result_type(x, decay, np.float32))
-    g = np.array(decay, dtype=a.dtype)
-    k, steps = 1, a.shape[0]
+    product of 2k decays. Only products and sums: exact at terminations (decay 0)."""
+    a, g = x, decay
+    k, steps = 1, x.shape[0]
     while k < steps:
-        a[:-k] += g[:-k] * a[k:]  # the right side is evaluated first: a[k:] as before
-        g[:-k] *= g[k:]
+        a = torch.cat([a[:-k] + g[:-k] * a[k:], a[-k:]])
+        g = torch.cat([g[:-k] * g[k:], g[-k:]])
         k *= 2
     return a
 
 
-def vtrace_arrays(
-    behaviour_logp: np.ndarray,
-    target_logp: np.ndarray,
-    rewards: np.ndarray,
-    values: np.ndarray,
-    bootstrap_value: np.ndarray,
-    discounts: np.ndarray,
-    rho_bar: float = 1.0,
-    c_bar: float = 1.0,
-    rho_pg_bar: float = 1.0,
-    lambda_: float = 1.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(vs, pg_advantages, clipped_rhos, deltas) in numpy, [T, B] each (see `vtrace_terms`)."""
-    ratios = np.exp(target_logp - behaviour_logp)
-    rhos = np.minimum(ratios, rho_bar)
-    cs = lambda_ * np.minimum(ratios, c_bar)
-    next_values = np.concatenate([values[1:], bootstrap_value[None]])
-    deltas = rewards + discounts * next_values - values
-    vs = values + discounted_sums(rhos * deltas, discounts * cs)
-    next_vs = np.concatenate([vs[1:], bootstrap_value[None]])
-    pg_advantages = np.minimum(ratios, rho_pg_bar) * (rewards + discounts * next_vs - values)
-    return vs, pg_advantages, rhos, deltas
-
-
-@torch.no_grad()
 def vtrace_terms(
     behaviour_logp: torch.Tensor,
     target_logp: torch.Tensor,
@@ -77,13 +48,20 @@ def vtrace_terms(
     rho_pg_bar: float = 1.0,
     lambda_: float = 1.0,
 ) -> VTraceTerms:
-    """V-trace with the intermediate terms the learner also needs (priorities use ρδ).
-    `lambda_` scales the traces, c_t = λ·min(c̄, π/μ) (as rlax's and Sample Factory's V-trace):
-    λ < 1 trades the targets' variance for bias, like GAE's λ."""
-    arrays = (x.detach().numpy() for x in (
-        behaviour_logp, target_logp, rewards, values, bootstrap_value, discounts))
-    return VTraceTerms(*(torch.from_numpy(x) for x in vtrace_arrays(
-        *arrays, rho_bar, c_bar, rho_pg_bar, lambda_)))
+    """V-trace with the intermediate terms the learner also needs (priorities use ρδ), all
+    without gradient. `lambda_` scales the traces, c_t = λ·min(c̄, π/μ) (as rlax's and Sample
+    Factory's V-trace): λ < 1 trades the targets' variance for bias, like GAE's λ."""
+    with torch.no_grad():
+        ratios = torch.exp(target_logp - behaviour_logp)
+        rhos = torch.clamp(ratios, max=rho_bar)
+        cs = lambda_ * torch.clamp(ratios, max=c_bar)
+        next_values = torch.cat([values[1:], bootstrap_value[None]])
+        deltas = rewards + discounts * next_values - values
+        vs = values + discounted_sums(rhos * deltas, discounts * cs)
+        next_vs = torch.cat([vs[1:], bootstrap_value[None]])
+        pg_advantages = torch.clamp(ratios, max=rho_pg_bar) * (rewards + discounts * next_vs
+                                                               - values)
+    return VTraceTerms(vs, pg_advantages, rhos, deltas)
 
 
 def vtrace(

@@ -35,6 +35,18 @@ class ConfigError(ValueError):
     """A bad setting; the message says which and what to do."""
 
 
+# Settings that existed once and were removed, with what replaced them: refused by name wherever
+# a setting can be given (flag, variable, file), never as merely "unknown".
+RETIRED = {
+    "loss_impl": "the loss is tpdeb_core/loss.py alone, differentiated by autograd and "
+                 "compiled (the `compile` setting: auto | off); remove loss_impl",
+}
+
+
+def retired(name: str, source: str) -> ConfigError:
+    return ConfigError(f"{source}: {name} was removed: {RETIRED[name]}")
+
+
 @functools.cache
 def field_docs(cls) -> dict[str, str]:
     """Attribute docstrings (the string literal right after each field) of a dataclass."""
@@ -139,6 +151,8 @@ def read_sections(cls, tables: dict, source: str, allowed: set[str] | None = Non
                               f"{', '.join(f'[{s}]' for s in SECTIONS if s in sections)}")
         for key, value in table.items():
             key = key.replace("-", "_")
+            if key in RETIRED:
+                raise retired(key, f"{source} [{section}]")
             if key not in known:
                 near = difflib.get_close_matches(key, known, n=1)
                 hint = f" (did you mean {near[0]!r}?)" if near else ""
@@ -187,10 +201,14 @@ def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
     for name in sorted(training_names() - names) if "run_id" in names else ():
         parser.add_argument("--" + name.replace("_", "-"), nargs="*", default=argparse.SUPPRESS,
                             dest=f"{_OTHERS}{name}", help=argparse.SUPPRESS)
+    for name in RETIRED:
+        parser.add_argument("--" + name.replace("_", "-"), nargs="*", default=argparse.SUPPRESS,
+                            dest=f"{_RETIRED}{name}", help=argparse.SUPPRESS)
     return parser
 
 
 _OTHERS = "other service's "  # the dest prefix of the flags a service passes over
+_RETIRED = "removed setting "  # and of those that no longer exist
 
 
 def training_names() -> set[str]:
@@ -217,6 +235,13 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, environ=No
     parser = build_parser(cls, prog, description)
     args = {k: v for k, v in vars(parser.parse_args(argv)).items()
             if not k.startswith(_OTHERS)}
+    for key in args:
+        if key.startswith(_RETIRED):
+            name = key[len(_RETIRED):]
+            raise retired(name, "--" + name.replace("_", "-"))
+    for name in RETIRED:
+        if ENV_PREFIX + name.upper() in environ:
+            raise retired(name, ENV_PREFIX + name.upper())
     names = {f.name for f in dataclasses.fields(cls)}
     values: dict = {}
     config_path = args.pop("config", None)

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from tpdeb.services.config import ConfigError
 from tpdeb.services.device import check_device_setting
-from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig, closed_form_refusal
+from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
 from tpdeb.tpdeb_core.policy import POLICY_STDS
 from tpdeb.tpdeb_core.rate_limiter import RateLimiter
 from tpdeb.tpdeb_core.replay import RETENTIONS, DualReplay
@@ -121,7 +121,7 @@ class ModelSettings:
     """clip normalised observations to ±this"""
     policy_std: str = "global"
     """global: one learned log-std per action dimension | state: a log-std head on the policy's
-    last hidden layer, bounded to [-5, 2] (needs loss_impl=autograd)"""
+    last hidden layer, bounded to [-5, 2]"""
 
     def __post_init__(self):
         chain_post_init(ModelSettings, self)
@@ -185,6 +185,9 @@ class ReplaySettings:
         ])
 
 
+COMPILE_MODES = ("auto", "off")
+
+
 @dataclass
 class LearnerSettings:
     """How the learner runs and publishes, besides the loss."""
@@ -210,6 +213,10 @@ class LearnerSettings:
     the behaviour policies' log-std under the same ceiling"""
     final_log_std: float = -2.0
     """the ceiling of the log-std at the end of the run (with anneal_log_std)"""
+    compile: str = "auto"
+    """auto: the update runs eagerly from the first batch while torch.compile prepares it in
+    the background (the cache under ~/.cache/tpdeb makes later starts quick), then runs
+    compiled | off: eager throughout (for debugging the loss)"""
 
     def __post_init__(self):
         chain_post_init(LearnerSettings, self)
@@ -218,6 +225,7 @@ class LearnerSettings:
             (self.params_dtype in ("float32", "float16"), "params_dtype",
              "must be float32 or float16"),
             (self.torch_threads >= 1, "torch_threads", "must be ≥ 1"),
+            (self.compile in COMPILE_MODES, "compile", f"must be one of {COMPILE_MODES}"),
             (check_device_setting(self.device) is None, "device",
              check_device_setting(self.device) or ""),
         ])
@@ -287,10 +295,6 @@ class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
         if self.anneal_log_std and self.policy_std != "global":
             raise ConfigError(f"anneal_log_std=true holds the global log-std, not "
                               f"policy_std={self.policy_std!r}: set policy_std=global")
-        if self.loss_impl == "closed_form":  # the learner's own rule, refused at start
-            refusal = closed_form_refusal(self.loss_config(), self.policy_std)
-            if refusal:
-                raise ConfigError(refusal)
 
     def loss_config(self) -> LossConfig:
         names = {f.name for f in dataclasses.fields(LossConfig)}

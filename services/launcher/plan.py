@@ -12,11 +12,13 @@ from pathlib import Path
 
 from tpdeb.services.config import (
     ENV_PREFIX,
+    RETIRED,
     ConfigError,
     coerce,
     known_settings,
     load_toml,
     read_sections,
+    retired,
 )
 from tpdeb.services.config.presets import layer
 from tpdeb.services.config.train import TrainConfig
@@ -176,7 +178,10 @@ def train_settings(section: dict, args: argparse.Namespace, source: str) -> Trai
         key, sep, value = item.partition("=")
         if not sep:
             raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        train[key.strip().replace("-", "_")] = value.strip()
+        key = key.strip().replace("-", "_")
+        if key in RETIRED:
+            raise retired(key, f"--set {key}")
+        train[key] = value.strip()
     names = {f.name for f in dataclasses.fields(TrainConfig)}
     if set(train) - names:
         raise ConfigError(f"train setting(s) {sorted(set(train) - names)} do not exist "
