@@ -214,6 +214,37 @@ def test_learner_state_round_trips_through_a_checkpoint(tmp_path):
         assert torch.equal(x, y)
 
 
+def test_a_checkpoint_from_before_the_compiled_learner_loads_its_optimiser_converted(tmp_path):
+    """Checkpoints written by the learner's earlier Adam kept torch.optim.Adam's layout with
+    plain floats (the learning rate, one step count copied per parameter, no fused or
+    capturable flags): they load, the moments and step count kept, this learner's options
+    put back, and training goes on."""
+    learner, fragments = trained_learner(steps=3)
+    state = learner.state_dict()
+    groups = state["optimizer"]["param_groups"]
+    old = {"state": {k: {"step": torch.tensor(3.0), "exp_avg": v["exp_avg"].clone(),
+                         "exp_avg_sq": v["exp_avg_sq"].clone()}
+                     for k, v in state["optimizer"]["state"].items()},
+           "param_groups": [{"lr": 1e-3, "betas": (0.9, 0.999), "eps": 1e-5, "weight_decay": 0,
+                             "amsgrad": False, "maximize": False, "foreach": None,
+                             "capturable": False, "differentiable": False, "fused": None,
+                             "decoupled_weight_decay": False, "params": groups[0]["params"]}]}
+    path = tmp_path / "old.pt"
+    torch.save({**state, "optimizer": old, "global_step": 1234, "version": 3}, path)
+    fresh = Learner(ActorCritic(3, 1), LossConfig(kl_target=0.01, adam_eps=1e-6))
+    fresh.load_state_dict(ckpt.read_checkpoint(path))
+    group = fresh.optimizer.param_groups[0]
+    assert group["fused"] and isinstance(group["lr"], torch.Tensor) and group["eps"] == 1e-6
+    assert fresh.learning_rate() == pytest.approx(1e-3)
+    for p, q in zip(learner.params, fresh.params, strict=True):
+        for name in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(learner.optimizer.state[p][name], fresh.optimizer.state[q][name])
+        assert int(fresh.optimizer.state[q]["step"]) == 3
+    n = len(fragments)
+    fresh.step(stack_fragments(fragments), np.arange(n), np.ones(n, np.float32), np.ones(n, bool))
+    assert fresh.updates == 4 and int(fresh.optimizer.state[fresh.params[0]]["step"]) == 4
+
+
 def test_metrics_append_after_a_torn_last_line(tmp_path):
     (tmp_path / "metrics.jsonl").write_text('{"global_step": 1, "a": 1.0}\n{"global_st')
     writer = MetricsWriter(tmp_path)
