@@ -91,7 +91,8 @@ class LearnerService:
         seed_everything(config.seed)
         self.model = model_for(spec)
         self.device = resolve_device(config.device)
-        self.pin = self.device.type != "cpu"
+        # off the CPU, batches go through pinned memory and priorities come back a turn late
+        self.pin = self.defer_priorities = self.device.type != "cpu"
         try:  # the run spec's model against this learner's loss settings
             self.learner = Learner(self.model, config.loss_config(), self.device)
         except ValueError as exc:
@@ -432,7 +433,7 @@ class LearnerService:
         copied out without waiting (into pinned memory) and sent after the next update, by
         when the copy is done, so the host never stalls the device. None: send what waits."""
         ready, self.pending = self.pending, None
-        if new is not None and self.device.type == "cpu":
+        if new is not None and not self.defer_priorities:
             ready, new = new, None
         if new is not None:
             keys, chosen, priorities = new

@@ -13,7 +13,7 @@ import torch
 
 from tests.test_checkpoint import close, service_for, spec_for
 from tests.test_learner import fragments_and_model
-from tpdeb.protocol import SampleReply
+from tpdeb.protocol import PriorityUpdate, SampleReply, decode
 from tpdeb.services.compiled import BackgroundCompile
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.learner import Learner, place
@@ -98,3 +98,36 @@ def test_a_compile_that_fails_leaves_the_learner_eager_saying_why(caplog, monkey
     assert "RuntimeError: no C++ compiler here" in line and "eager" in line
     assert learner.run_update is learner.rules
     learner.update(batch, learner.normaliser())  # and it trains
+
+
+def test_on_an_accelerator_the_priorities_leave_one_update_later_without_a_wait(
+        tmp_path, monkeypatch):
+    """Off the CPU the service copies a batch's priorities out without waiting and sends them
+    after the next update (then the copy is done); the last batch's go at the end. Run on the
+    CPU with the deferral a GPU learner takes and its events stubbed."""
+    recorded = []
+
+    class Event:
+        def record(self):
+            recorded.append("record")
+
+        def synchronize(self):
+            recorded.append("synchronize")
+
+    fragments, _ = fragments_and_model(n=12, seed=5)
+    service, _ = service_for(tmp_path, spec=spec_for(obs_dim=3, act_dim=1))
+    try:
+        monkeypatch.setattr(torch.cuda, "Event", Event)
+        service.defer_priorities = True
+        sent = []
+        service.priorities_publisher.put = sent.append
+        service.train_on(reply(fragments, 1))
+        assert not sent and recorded == ["record"]  # copied, not yet sent
+        service.train_on(reply(fragments, 2))
+        assert len(sent) == 1 and recorded == ["record", "record", "synchronize"]
+        first = decode(sent[0], PriorityUpdate)
+        np.testing.assert_array_equal(first.keys, [6, 8, 10])  # batch 1's prioritized keys
+        service.send_priorities(None)  # as `finish` does
+        assert len(sent) == 2 and decode(sent[1], PriorityUpdate).keys.tolist() == [12, 14, 16]
+    finally:
+        close(service)

@@ -25,8 +25,14 @@ class TorchOps:
     """torch: a layer is (W, b) for the fused `linear`."""
 
     exp = staticmethod(torch.exp)
-    tanh = staticmethod(torch.tanh)
     clip = staticmethod(torch.clamp)
+
+    @staticmethod
+    def tanh(x):
+        """tanh x = 2σ(2x) − 1, equal to torch.tanh within 2e-7: on the CPU torch's sigmoid
+        kernel takes ~14 µs for a [512, 64] activation where its tanh takes ~84 µs (and
+        compiled, ~30 against ~65), and the hidden layers' tanh were a third of an update."""
+        return 2.0 * torch.sigmoid(2.0 * x) - 1.0
 
     @staticmethod
     def linear(x, layer):
