@@ -55,10 +55,10 @@ class BackgroundCompile:
     """Compiles a learner's update on a copy, in a thread; `install` switches the learner."""
 
     def __init__(self, learner: Learner):
-        configure_compiler()
         self.learner = learner
-        options = compile_options(learner)
-        self.update = torch.compile(learner.rules, **options)
+        # made in the thread: importing the compiler (~1.5 s, ~110 MiB) must not hold back
+        # the first update
+        self.update = None
         self.done = threading.Event()
         self.error: str | None = None
         self.seconds = 0.0
@@ -74,6 +74,10 @@ class BackgroundCompile:
     def _compile(self, shadow: State, batch: Batch, norm: torch.Tensor) -> None:
         started = time.perf_counter()
         try:
+            if self.update is None:
+                configure_compiler()
+                self.update = torch.compile(self.learner.rules,
+                                            **compile_options(self.learner))
             for _ in range(2):  # the second call runs what the first compiled
                 self.update(shadow, batch, norm)
         except Exception as exc:  # noqa: BLE001 - reported; the learner stays eager
