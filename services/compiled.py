@@ -89,7 +89,10 @@ class BackgroundCompile:
         return self.done.is_set()
 
     def install(self) -> bool:
-        """Switch the learner to the compiled update (True), or say why it stays eager."""
+        """Switch the learner to the compiled update (True), or say why it stays eager. The
+        thread is joined first (it has ended or is ending): a process must not exit with it
+        inside the compiler, which aborts the interpreter."""
+        self.thread.join()
         if self.error is not None:
             log.warning(f"the compiled update could not be prepared ({self.error}); training "
                         "goes on eager")

@@ -462,6 +462,14 @@ class LearnerService:
             self.compiled = True
             compiler.install()
 
+    def wait_for_compile(self) -> None:
+        """A compile still running when the run ends is let finish: the interpreter must not
+        exit under a thread inside the compiler (it would abort the process)."""
+        thread = self.compiler.thread if self.compiler is not None else None
+        if thread is not None and thread.is_alive():
+            log.info("waiting for the update's compile to end before exiting")
+            thread.join()
+
     def follow_schedules(self) -> None:
         """The learning rate and the log-std ceiling where they are annealed, at the run's
         progress (the steps' or the seconds', whichever is further along)."""
@@ -567,6 +575,7 @@ class LearnerService:
     def finish(self, finished: bool) -> None:
         # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
         self.send_priorities(None)  # the last batch's, where they wait a turn
+        self.wait_for_compile()
         path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
         if self.learner.updates:
             self.write_policy()

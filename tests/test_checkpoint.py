@@ -47,7 +47,9 @@ class Watched:
 
 
 def config_for(run_dir, **extra) -> LearnerServiceConfig:
-    return LearnerServiceConfig(run_id="t", env_id=ENV, run_dir=str(run_dir), **extra)
+    """A learner's settings for a test: its update eager unless the test asks to compile."""
+    return LearnerServiceConfig(run_id="t", env_id=ENV, run_dir=str(run_dir),
+                                **{"compile": "off", **extra})
 
 
 def spec_for(obs_dim=4, act_dim=1, env_id=ENV, hidden_sizes=(64, 64), policy_std="global"):
