@@ -22,7 +22,6 @@ collected with, so policy lag and sample age are measured in versions as well.
 
 from __future__ import annotations
 
-import importlib
 import json
 import logging
 import queue
@@ -198,8 +197,6 @@ class LearnerService:
         # Settings given now win over those stored in the optimiser's state; an adapted KL
         # coefficient is state and stays.
         self.learner.set_learning_rate(cfg.learning_rate)
-        for group in self.learner.optimizer.param_groups:
-            group["eps"] = cfg.adam_eps
         if cfg.kl_target <= 0:
             self.learner.kl_coef = cfg.kl_coef
         self.global_step = int(state["global_step"])
@@ -645,11 +642,6 @@ def main(argv: list[str] | None = None) -> int:
         session = open_for(config)
     except ConfigError as exc:
         return fail(PROG, exc)
-    # torch.optim.Adam's construction imports TorchDynamo (~1 s of CPU): imported while the
-    # learner waits for the run spec, not after it
-    warm = threading.Thread(target=importlib.import_module, args=("torch._dynamo",),
-                            daemon=True, name="import")
-    warm.start()
     stop = StopSignal().install()
     try:
         keys = Keys(config.run_id)
@@ -658,10 +650,8 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"the replay server trains {spec.env_id!r} with env_kwargs "
                               f"{spec.env_kwargs or '{}'}, this learner was started with "
                               f"--env-id {config.env_id!r} and {config.env_kwargs or '{}'}")
-        warm.join()
         service = LearnerService(config, spec, session, stop, resume)
     except ConfigError as exc:
-        warm.join()
         close_session(session, PROG)
         if stop:  # stopped while waiting for the replay server: not an error
             log.info(f"stopped ({stop.reason}) before training")

@@ -337,8 +337,6 @@ class Learner:
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
         self.params = list(model.parameters())
-        self.optimizer = torch.optim.Adam(self.params, **self._optimizer_options(
-            config.learning_rate))
         self._kl_coef = torch.tensor(float(config.kl_coef), device=on)
         # The global log-std is held at or below this after every step, and the behaviour
         # policies' log-std is read under it in the KL term (+∞: free); the caller moves it
@@ -352,31 +350,47 @@ class Learner:
             [n for n, _ in self.target_policy.named_parameters()], model.obs_clip,
             model.policy.policy_std == "global", on.type)
         self.run_update: Callable = self.rules
-        self._refresh_state()
+        # Adam's moments and step counts at zero, as its first step would make them; the
+        # torch.optim.Adam that owns them for checkpoints is made when first asked for
+        # (`optimizer`): its construction imports TorchDynamo (~1 s), which the first update
+        # need not wait for.
+        self._optimizer: torch.optim.Adam | None = None
+        self.state = State(
+            self.params, list(self.target_policy.parameters()),
+            [torch.zeros_like(p) for p in self.params], [torch.zeros_like(p) for p in self.params],
+            [torch.zeros((), device=on) for _ in self.params],
+            torch.tensor(float(config.learning_rate), device=on), self._kl_coef, self._ceiling,
+            self._metric_sums)
 
-    def _optimizer_options(self, lr: float) -> dict:
+    def _optimizer_options(self, lr: torch.Tensor) -> dict:
         """torch.optim.Adam's settings: the learning rate a device tensor (a schedule moves it
         without a compiled update being traced again), fused on the CPU, capturable on an
         accelerator (its step count on the device, so nothing is read back)."""
-        options = {"lr": torch.tensor(float(lr), device=self.device), "eps": self.config.adam_eps,
-                   "betas": ADAM_BETAS}
+        options = {"lr": lr, "eps": self.config.adam_eps, "betas": ADAM_BETAS}
         if self.device.type == "cpu":
             return {**options, "fused": True}
         return {**options, "foreach": True, "capturable": True}
 
-    def _refresh_state(self) -> None:
-        """`state`: the tensors the update works on, the optimiser's moments and step counts
-        made at zero where it has none yet (as its first step would)."""
-        opt = self.optimizer.state
-        for p in self.params:
-            if not opt[p]:
-                opt[p].update(step=torch.zeros((), device=self.device),
-                              exp_avg=torch.zeros_like(p), exp_avg_sq=torch.zeros_like(p))
-        self.state = State(
-            self.params, list(self.target_policy.parameters()),
-            [opt[p]["exp_avg"] for p in self.params], [opt[p]["exp_avg_sq"] for p in self.params],
-            [opt[p]["step"] for p in self.params], self.optimizer.param_groups[0]["lr"],
-            self._kl_coef, self._ceiling, self._metric_sums)
+    @property
+    def optimizer(self) -> torch.optim.Adam:
+        """torch.optim.Adam over the parameters, holding the update's own moments, step counts
+        and learning rate (the same tensors): its state dict is the checkpoint's."""
+        if self._optimizer is None:
+            opt = torch.optim.Adam(self.params, **self._optimizer_options(self.state.lr))
+            opt.param_groups[0]["lr"] = self.state.lr  # the very tensor a schedule fills
+            for i, p in enumerate(self.params):
+                opt.state[p] = {"step": self.state.steps[i], "exp_avg": self.state.exp_avgs[i],
+                                "exp_avg_sq": self.state.exp_avg_sqs[i]}
+            self._optimizer = opt
+        return self._optimizer
+
+    def _state_from_optimizer(self) -> None:
+        """After the optimiser loaded a state dict: the update works on its new tensors."""
+        opt = self.optimizer
+        self.state = self.state._replace(
+            exp_avgs=[opt.state[p]["exp_avg"] for p in self.params],
+            exp_avg_sqs=[opt.state[p]["exp_avg_sq"] for p in self.params],
+            steps=[opt.state[p]["step"] for p in self.params], lr=opt.param_groups[0]["lr"])
 
     def use(self, run_update: Callable) -> None:
         """Run updates with this version of `rules` (a compiled one: the same function,
@@ -480,10 +494,11 @@ class Learner:
             raise ValueError("optimizer state uses weight decay or AMSGrad, which the learner's "
                              "Adam does not")
         ours = {k: v for k, v in self.optimizer.param_groups[0].items() if k != "params"}
+        lr = torch.tensor(float(groups[0]["lr"]), device=self.device)
         self.optimizer.load_state_dict({
             "state": saved["state"],
-            "param_groups": [{**ours, **self._optimizer_options(float(groups[0]["lr"])),
+            "param_groups": [{**ours, **self._optimizer_options(lr),
                               "params": groups[0]["params"]}]})
-        self._refresh_state()
+        self._state_from_optimizer()
         self.kl_coef = float(state["kl_coef"])
         self.updates = int(state["updates"])
