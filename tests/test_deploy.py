@@ -68,9 +68,7 @@ class Stack:
 
     def __init__(self, procs, tmp: Path, host: str):
         self.procs, self.tmp, self.host, self.port = procs, tmp, host, free_port()
-        # TPDEB_COMPILE stays: the suite's learners run eagerly (conftest), compose's too
-        self.base = {k: v for k, v in os.environ.items()
-                     if not k.startswith("TPDEB_") or k == "TPDEB_COMPILE"}
+        self.base = {k: v for k, v in os.environ.items() if not k.startswith("TPDEB_")}
         self.bin = Path(sys.executable).parent
 
     def volumes(self, runs: str = "runs") -> dict[str, Path]:
