@@ -95,7 +95,7 @@ class BackgroundCompile:
         self.thread.join()
         if self.error is not None:
             log.warning(f"the compiled update could not be prepared ({self.error}); training "
-                        "goes on eager")
+                        "goes on eager (--set compile=off skips the attempt)")
             return False
         self.learner.use(self.update)
         log.info(f"update compiled in {self.seconds:.1f} s (in the background); the learner "

@@ -47,6 +47,7 @@ METRICS = ("losses/policy_loss", "losses/value_loss", "losses/entropy", "losses/
 # A batch's truncated steps are padded to at least this many (then to the next power of two), so
 # that batches keep one shape and a compiled update is not traced again for each count.
 TRUNC_SLOTS = 8
+ADAM_BETAS = (0.9, 0.999)  # torch.optim.Adam's defaults
 
 
 class Batch(NamedTuple):
@@ -311,8 +312,6 @@ class Update:
         state.metric_sums.add_(torch.cat([metrics, grad_norm[None], state.kl_coef[None]]))
 
 
-ADAM_BETAS = (0.9, 0.999)
-
 
 @dataclass
 class StepResult:
@@ -337,12 +336,6 @@ class Learner:
         self.config = config
         self.target_policy = copy.deepcopy(model.policy).requires_grad_(False)
         self.params = list(model.parameters())
-        self._kl_coef = torch.tensor(float(config.kl_coef), device=on)
-        # The global log-std is held at or below this after every step, and the behaviour
-        # policies' log-std is read under it in the KL term (+∞: free); the caller moves it
-        # along its schedule.
-        self._ceiling = torch.tensor(math.inf, device=on)
-        self._metric_sums = torch.zeros(len(METRICS), device=on)
         self._metric_count = 0
         self.updates = 0
         self.rules = Update(
@@ -353,14 +346,17 @@ class Learner:
         # Adam's moments and step counts at zero, as its first step would make them; the
         # torch.optim.Adam that owns them for checkpoints is made when first asked for
         # (`optimizer`): its construction imports TorchDynamo (~1 s), which the first update
-        # need not wait for.
+        # need not wait for. The log-std ceiling starts at +∞ (free); the caller moves it
+        # along its schedule (`log_std_ceiling`).
         self._optimizer: torch.optim.Adam | None = None
         self.state = State(
             self.params, list(self.target_policy.parameters()),
             [torch.zeros_like(p) for p in self.params], [torch.zeros_like(p) for p in self.params],
             [torch.zeros((), device=on) for _ in self.params],
-            torch.tensor(float(config.learning_rate), device=on), self._kl_coef, self._ceiling,
-            self._metric_sums)
+            lr=torch.tensor(float(config.learning_rate), device=on),
+            kl_coef=torch.tensor(float(config.kl_coef), device=on),
+            ceiling=torch.tensor(math.inf, device=on),
+            metric_sums=torch.zeros(len(METRICS), device=on))
 
     def _optimizer_options(self, lr: torch.Tensor) -> dict:
         """torch.optim.Adam's settings: the learning rate a device tensor (a schedule moves it
@@ -400,20 +396,20 @@ class Learner:
     # -- settings the caller moves between updates (no read-back: in-place fills)
     @property
     def kl_coef(self) -> float:
-        return float(self._kl_coef)
+        return float(self.state.kl_coef)
 
     @kl_coef.setter
     def kl_coef(self, value: float) -> None:
-        self._kl_coef.fill_(float(value))
+        self.state.kl_coef.fill_(float(value))
 
     @property
     def log_std_ceiling(self) -> float | None:
-        value = float(self._ceiling)
+        value = float(self.state.ceiling)
         return None if math.isinf(value) else value
 
     @log_std_ceiling.setter
     def log_std_ceiling(self, value: float | None) -> None:
-        self._ceiling.fill_(math.inf if value is None else float(value))
+        self.state.ceiling.fill_(math.inf if value is None else float(value))
 
     def set_learning_rate(self, lr: float) -> None:
         self.state.lr.fill_(lr)
@@ -464,8 +460,9 @@ class Learner:
         """The metrics' means over the updates since the last read (one read-back)."""
         if not self._metric_count:
             return {}
-        values = (self._metric_sums / self._metric_count).tolist()
-        self._metric_sums.zero_()
+        sums = self.state.metric_sums
+        values = (sums / self._metric_count).tolist()
+        sums.zero_()
         self._metric_count = 0
         return dict(zip(METRICS, values, strict=True))
 
