@@ -22,7 +22,7 @@ $(VENV)/.installed: pyproject.toml | $(BIN)/python
 install: $(VENV)/.installed
 
 run: install
-	$(BIN)/tpdeb-cluster --config deploy/local.toml $(ARGS)
+	$(BIN)/tpdeb-cluster --cluster-file deploy/local.toml $(ARGS)
 
 serial: install
 	$(BIN)/tpdeb-train --env-id HalfCheetah-v5 $(ARGS)

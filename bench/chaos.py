@@ -228,7 +228,7 @@ class Chaos:
 
     def start(self) -> None:
         budget = self.window[1] + self.args.calm_s
-        cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--config",
+        cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--cluster-file",
                str(ROOT / "deploy" / "local.toml"), "--env-id", self.args.env_id,
                "--seed", str(self.args.seed), "--run-dir", str(self.run_dir),
                "--total-timesteps", str(10**9), "--train-for-seconds", str(budget),

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import psutil
 
-SERVICES = ("router", "replay", "learner", "actor", "link", "cluster")
+SERVICES = ("router", "replay", "learner", "actor", "link", "evaluator", "cluster")
 
 
 def proc_table() -> dict[int, tuple[int, float]]:

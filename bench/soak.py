@@ -318,7 +318,8 @@ def main() -> int:
     p.add_argument("--interval-s", type=float, default=5.0, help="seconds between RSS samples")
     p.add_argument("--tolerance-pct", type=float, default=5.0,
                    help="largest |final − warm-up| drift that passes, in percent")
-    p.add_argument("--config", default=str(ROOT / "deploy" / "local.toml"), help="cluster file")
+    p.add_argument("--cluster-file", default=str(ROOT / "deploy" / "local.toml"),
+                   help="cluster file")
     p.add_argument("--total-timesteps", type=int, default=100_000_000,
                    help="the run's length: far beyond what the soak reaches, so it never ends")
     p.add_argument("--stop-timeout-s", type=float, default=120.0,
@@ -345,7 +346,7 @@ def main() -> int:
 
     record = provenance.start()
     run_dir = Path(tempfile.mkdtemp(prefix="tpdeb-soak-"))
-    argv = [*cluster_command(), "--config", args.config, "--total-timesteps",
+    argv = [*cluster_command(), "--cluster-file", args.cluster_file, "--total-timesteps",
             str(args.total_timesteps), "--run-dir", str(run_dir), *args.cluster_args]
     log_path = run_dir / "cluster-stdout.log"
     duration_s, warmup_s = 60 * args.minutes, 60 * args.warmup_minutes

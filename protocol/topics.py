@@ -4,8 +4,9 @@ subscribers, queryables and tokens from this table, and the router's access-cont
 derived from it, so the three cannot disagree.
 
 Roles: `replay`, `learner`, `actor` (one per actor id), `monitor` (a watching session such as the
-launcher's), `link` (the link shim's stats). QoS is named here in words (this package does not
-import Zenoh); `tpdeb.services.net.session.qos` turns it into Zenoh's options.
+launcher's), `link` (the link shim's stats), `evaluator` (evaluation while training). QoS is
+named here in words (this package does not import Zenoh); `tpdeb.services.net.session.qos` turns
+it into Zenoh's options.
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from dataclasses import dataclass
 from tpdeb.protocol import messages as m
 from tpdeb.protocol.keys import Keys
 
-ROLES = ("replay", "learner", "actor", "monitor", "link")
+ROLES = ("replay", "learner", "actor", "monitor", "link", "evaluator")
 
 
 @dataclass(frozen=True)
@@ -54,20 +55,21 @@ TOPICS: tuple[Topic, ...] = (
     Topic("sample", "query", (m.SampleRequest, m.SampleReply), ("replay",), ("learner",),
           why="several in flight, so a batch is usually waiting when an update ends"),
     Topic("priorities", "put", (m.PriorityUpdate,), ("learner",), ("replay",)),
-    Topic("params_latest", "query", (m.Params,), ("learner",), ("actor", "monitor"),
+    Topic("params_latest", "query", (m.Params,), ("learner",), ("actor", "monitor", "evaluator"),
           why="long poll: answered once a version above the asker's exists"),
     Topic("params", "put", (m.Params,), ("learner",), (), priority="data_low",
           why="for monitors; latest wins, put only when someone subscribes"),
-    Topic("spec", "query", (m.RunSpec,), ("replay",), ("learner", "actor", "monitor"),
+    Topic("spec", "query", (m.RunSpec,), ("replay",), ("learner", "actor", "monitor", "evaluator"),
           why="peers refuse a run whose spec differs from theirs (env id and keyword "
               "arguments, dims)"),
     Topic("join", "query", (m.JoinRequest, m.JoinReply), ("replay",), ("actor",),
           why="--actor-id auto: the lowest id no actor of the run holds"),
-    Topic("control", "put", (m.Control,), ("learner",), ("replay", "actor", "monitor"),
+    Topic("control", "put", (m.Control,), ("learner",), ("replay", "actor", "monitor", "evaluator"),
           priority="interactive_high", congestion="block", why="the stop broadcast"),
-    Topic("stats", "put", (m.Stats,), ("replay", "learner", "actor", "link"),
-          ("learner", "monitor"), own_key=True),
-    Topic("alive", "token", (), ("replay", "learner", "actor"),
+    Topic("stats", "put", (m.Stats,), ("replay", "learner", "actor", "link", "evaluator"),
+          ("learner", "monitor", "evaluator"), own_key=True,
+          why="the evaluator hears the learner's global step and reports its figures"),
+    Topic("alive", "token", (), ("replay", "learner", "actor", "evaluator"),
           ("actor", "monitor"), own_key=True,
           watch=(("actor", "replay"), ("monitor", "all")),
           why="an actor resends its outbox when the replay (re)appears"),

@@ -25,7 +25,6 @@ import zenoh
 
 from tpdeb.protocol import (
     Ack,
-    Control,
     DecodeError,
     Keys,
     Params,
@@ -45,7 +44,7 @@ from tpdeb.services.net.session import (
     open_for,
 )
 from tpdeb.services.net.wire import policy_from_params, spec_mismatch
-from tpdeb.services.process import StopSignal, actor_id_file, configure, fail
+from tpdeb.services.process import StopSignal, actor_id_file, configure, fail, obey_control
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
 
@@ -150,11 +149,7 @@ class ActorService:
             self.outbox.make_all_due()
 
     def _on_control(self, sample) -> None:
-        try:
-            if decode(sample.payload.to_bytes(), Control).command == "stop":
-                self.stop.set("stop message")
-        except DecodeError as exc:
-            self.log_bad(exc.kind, f"dropped a bad control message ({exc})")
+        obey_control(sample, self.stop, self.log_bad)
 
     # -- parameters
     def wait_for_params(self) -> None:

@@ -16,6 +16,7 @@ import contextlib
 import dataclasses
 import json
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -26,10 +27,19 @@ import zenoh
 
 from tpdeb.protocol import Control, DecodeError, Keys, decode
 from tpdeb.services.budget import Budget
-from tpdeb.services.config import ConfigError, resolve, to_toml
+from tpdeb.services.config import (
+    CONFIG_HELP,
+    SET_HELP,
+    ConfigError,
+    Parser,
+    add_setting_flags,
+    resolve,
+    to_toml,
+)
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import SERVICE_CONFIGS
-from tpdeb.services.envs import make_vector_env
+from tpdeb.services.config.train import TrainConfig
+from tpdeb.services.device import resolve_device
 from tpdeb.services.launcher import PROG
 from tpdeb.services.launcher.child import Child, RunEnded, resolve_command
 from tpdeb.services.launcher.plan import (
@@ -44,7 +54,10 @@ from tpdeb.services.launcher.plan import (
 from tpdeb.services.launcher.restart import RestartTracker
 from tpdeb.services.launcher.status import Display, Health
 from tpdeb.services.net.session import fetch_spec, open_session
+from tpdeb.services.preflight import preflight, run_dir_resume
 from tpdeb.services.process import StopSignal
+
+CONFIG_ERROR = 2  # the exit status of a service that refuses a setting (services/process.py)
 
 
 class Cluster:
@@ -59,19 +72,41 @@ class Cluster:
         self.session = None
         self.interrupted = False
 
+    def prepare(self) -> None:
+        """The run's checks before anything exists: the env, the learner's device, the run
+        dir (writable; this run's, when it exists)."""
+        preflight(self.plan.train)
+        self.resume = run_dir_resume(self.plan.train)
+
     def write_run_dir(self) -> None:
         """The run dir's logs, security files, train.toml and every child's configuration,
-        resolved before any process starts (a bad setting stops the launch, naming it)."""
+        resolved before any process starts. A bad setting of any service stops the launch,
+        naming it, and a run dir this launch made is removed again."""
+        made = not self.run_dir.exists()
+        try:
+            self._write_run_dir()
+        except ConfigError:
+            if made:
+                shutil.rmtree(self.run_dir, ignore_errors=True)
+            raise
+
+    def _write_run_dir(self) -> None:
         (self.run_dir / "logs").mkdir(parents=True, exist_ok=True)
         if self.plan.security.enabled:
             host = self.plan.endpoint.partition("/")[2].rpartition(":")[0].strip("[]")
             self.plan.security.prepare(self.run_dir / "security", self.users(),
                                        [host, "127.0.0.1", "localhost"])
-        train_file = self.run_dir / "train.toml"
-        train_file.write_text(to_toml(self.plan.train))
+        self.slots, configs = [], {}
+        for spec in self.plan.services:
+            for i in range(spec.replicas):
+                child, configs[child.name] = self.slot(spec, i)
+                self.slots.append(child)
+        if "learner" in configs:  # its own device, where its `args` or `env` set one
+            resolve_device(configs["learner"].device)
+        (self.run_dir / "train.toml").write_text(to_toml(self.plan.train))
         (self.run_dir / "config").mkdir(exist_ok=True)
-        self.slots = [self.slot(spec, i, train_file)
-                      for spec in self.plan.services for i in range(spec.replicas)]
+        for name, config in configs.items():
+            (self.run_dir / "config" / f"{name}.toml").write_text(to_toml(config))
         (self.run_dir / "cluster.json").write_text(json.dumps({
             "source": self.plan.source, "run_id": self.plan.run_id,
             "endpoint": self.plan.endpoint, "link": self.plan.link,
@@ -82,29 +117,30 @@ class Cluster:
             "security": self.plan.security.summary(),
             "train": dataclasses.asdict(self.plan.train)}, indent=2))
 
-    def slot(self, spec: ServiceSpec, index: int, train_file: Path) -> Child:
-        """A service process, its configuration resolved whole: train.toml, the network flags
-        the cluster gives it, its `args` and `env` and the shell's TPDEB_* variables, in the
-        services' own precedence. It starts with that file alone, so what the run dir records
-        is what runs, and a restart runs the same."""
+    def slot(self, spec: ServiceSpec, index: int) -> tuple[Child, object]:
+        """A service process and its configuration resolved whole: the training settings, the
+        network flags the cluster gives it, its `args` and `env` and the shell's TPDEB_*
+        variables, in the services' own precedence. It starts with that configuration's file
+        alone (config/{name}.toml), so what the run dir records is what runs, and a restart runs
+        the same."""
         name = spec.role if spec.replicas == 1 else f"{spec.role}-{index}"
         env = child_environment(os.environ, {k: str(v) for k, v in spec.env.items()},
                                 self.plan.security.env(user_of(spec.role, index)))
         try:
-            config = resolve(SERVICE_CONFIGS[spec.role],
-                             ["--config", str(train_file), *self.flags(spec, index)],
-                             f"{spec.command} ([services.{spec.role}] args)", "", environ=env)
+            config = resolve(SERVICE_CONFIGS[spec.role], self.flags(spec, index),
+                             f"{spec.command} ([services.{spec.role}] args)", "", environ=env,
+                             base=dataclasses.asdict(self.plan.train))
         except SystemExit:  # argparse has said which flag it does not know
             raise ConfigError(f"[services.{spec.role}] args {spec.args}: not all are flags of "
                               f"{spec.command} ({spec.command} --help lists them)") from None
         path = self.run_dir / "config" / f"{name}.toml"
-        path.write_text(to_toml(config))
-        return Child(
+        child = Child(
             name, spec.role, [*resolve_command(spec.command), "--config", str(path)],
             resolved_environment(env), self.run_dir / "logs" / f"{name}.log",
             self.display.echo, RestartTracker(spec.restart, self.plan.restarts),
             ident=None if spec.role == "router" else str(index),
             has_token=spec.role != "router", stats_interval_s=config.stats_interval_s)
+        return child, config
 
     def users(self) -> list[str]:
         """One user per process that opens a session (access control knows them by role)."""
@@ -153,11 +189,17 @@ class Cluster:
         except ConfigError as exc:
             say(f"[{PROG}] error: {exc}")
             return 2
+        except OSError as exc:
+            say(f"[{PROG}] error: run dir {self.run_dir}: {exc.strerror or exc}")
+            return 2
         train = self.plan.train
         limits = Budget(train.total_timesteps, train.train_for_seconds).describe()
         say(f"[{PROG}] run {self.plan.run_id}: {train.env_id}, {limits}, seed {train.seed}; "
             f"endpoint {self.plan.endpoint}; run dir {self.run_dir}")
         say(f"[{PROG}] algo {self.plan.train.algo}; preset: {shown(self.plan.train.preset)}")
+        if self.resume:
+            say(f"[{PROG}] continuing the run in {self.run_dir}: the learner resumes from its "
+                "newest checkpoint, the replay from its snapshots and log")
         keys = Keys(self.plan.run_id)
         try:
             router, *others = self.plan.services
@@ -316,6 +358,11 @@ class Cluster:
                 return None
             say(f"[{PROG}] learner exited with code {code} while finishing; see {child.log_path}")
             return 1
+        if code == CONFIG_ERROR:  # a setting the service refuses: a restart refuses it again
+            errors = [line for line in child.tail(20) if "error:" in line] or child.tail(1)
+            say(f"[{PROG}] {child.name} refused its configuration (exit status 2), so the run "
+                f"stops: {errors[-1].strip() if errors else f'see {child.log_path}'}")
+            return CONFIG_ERROR
         verdict = child.tracker.exited(code, now)
         if verdict.action == "restart":
             child.restart_at = now + verdict.delay_s
@@ -393,21 +440,16 @@ def user_of(role: str, index: int) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", help=f"cluster file (default: {DEFAULT_FILE})")
-    p.add_argument("--env-id", help="gymnasium environment id (overrides [train])")
-    p.add_argument("--env-kwargs", metavar="KWARGS",
-                   help="gymnasium.make's keyword arguments: a JSON object or a TOML inline table")
-    p.add_argument("--total-timesteps", type=int, help="env steps to train for")
-    p.add_argument("--train-for-seconds", type=float, metavar="S",
-                   help="seconds of training; with --total-timesteps, whichever binds first "
-                   "ends the run (0: no time limit)")
-    p.add_argument("--seed", type=int, help="seed of every service, actor and env")
-    p.add_argument("--num-envs", type=int, help="envs per actor")
+    """The cluster's own flags, and every training setting as tpdeb-train takes it (its flag,
+    `--set`, `--config FILE`)."""
+    p = Parser(prog=PROG, description=__doc__.split("\n\n")[0],
+               formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    p.add_argument("--cluster-file", help=f"cluster file: the services, their restart policies, "
+                   f"the [train] settings, [link], [security] (default: {DEFAULT_FILE})")
+    p.add_argument("--config", help=CONFIG_HELP)
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help=SET_HELP)
     p.add_argument("--actors", type=int, help="number of actor processes")
-    p.add_argument("--run-dir", help="run directory (default runs/{env}__{exp}__{seed}__{time})")
-    p.add_argument("--run-id", help="Zenoh run id (default from the file)")
+    p.add_argument("--run-id", help="Zenoh run id (default from the cluster file)")
     p.add_argument("--endpoint", help="router endpoint, e.g. tcp/127.0.0.1:7447")
     for key, text in (("tls", "TLS on every link (the endpoint becomes tls/…)"),
                       ("auth", "a generated user and password per service"),
@@ -416,23 +458,22 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                        help=f"{text} (overrides [security])")
     p.add_argument("--certs-dir", help="ca.pem, router.pem, router.key to use (tpdeb-certs "
                    "writes them; default: new ones in {run_dir}/security)")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="any training setting, e.g. --set learning_rate=3e-4 (repeatable)")
     for key in LINK_KEYS:
         p.add_argument(f"--link-{key.replace('_', '-')}", type=float, metavar="X",
                        help=f"link shim {key} between actors and the rest (0 = off; overrides "
                        "[link])")
+    add_setting_flags(p, TrainConfig)
     return p.parse_args(argv)
 
 
 def main(argv: list[str] | None = None) -> int:
     try:
         plan = make_plan(parse_args(argv))
-        make_vector_env(plan.train.env_id, 1, plan.train.env_kwargs).close()  # a bad env: one line
+        cluster = Cluster(plan)
+        cluster.prepare()
     except ConfigError as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
-    cluster = Cluster(plan)
     StopSignal(on_signal=cluster.interrupt).install()
     code = cluster.run()
     print(f"{PROG}: {'finished' if code == 0 else 'stopped'}; run dir {cluster.run_dir}",

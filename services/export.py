@@ -8,7 +8,8 @@ The source is a run dir, a checkpoint or a policy file. ONNX: one input `obs` [N
 float32, one output `action` [N, act_dim] float32: the observation normaliser, the mean network
 and the clipping to the action bounds are all inside the graph (opset 17), so the model's
 output is the action to send. It is the deterministic policy (the Gaussian's mean), equal to
-`tpdeb.load_policy(...).act(obs)` to 1e-5. `.npz`: the file `tpdeb.load_policy` reads.
+`tpdeb.load_policy(...).act(obs, deterministic=True)` to 1e-5. `.npz`: the file
+`tpdeb.load_policy` reads. The output path is checked before the policy is read.
 """
 
 from __future__ import annotations
@@ -19,7 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from tpdeb.services.policy_file import Policy, PolicyError, load_policy, policy_bytes
+from tpdeb.services.config import Parser
+from tpdeb.services.policy_file import (
+    Policy,
+    PolicyError,
+    load_policy,
+    policy_bytes,
+)
+from tpdeb.services.store.diskio import OutputError, writable_path
 
 PROG = "tpdeb-export"
 OPSET, IR_VERSION = 17, 8  # IR 8: what every onnxruntime of the last years reads
@@ -70,19 +78,23 @@ def onnx_model(policy: Policy):
 
 
 def export(source: str | Path, output: Path) -> Path:
-    policy = load_policy(source)
-    output.parent.mkdir(parents=True, exist_ok=True)
-    if output.suffix == ".onnx":
-        output.write_bytes(onnx_model(policy).SerializeToString())
-    elif output.suffix == ".npz":
-        output.write_bytes(policy_bytes(policy.file_arrays, policy.low, policy.high, policy.meta))
-    else:
+    """`source`'s policy written to `output` (.onnx or .npz), whose path is checked first."""
+    if output.suffix not in (".onnx", ".npz"):
         raise PolicyError(f"-o {output}: write a .onnx or a .npz file")
+    writable_path(output, "-o")
+    policy = load_policy(source)
+    data = (onnx_model(policy).SerializeToString() if output.suffix == ".onnx"
+            else policy_bytes(policy.file_arrays, policy.low, policy.high, policy.meta))
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        output.write_bytes(data)
+    except OSError as exc:
+        raise OutputError.of("-o", output, exc) from None
     return output
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__,
+    parser = Parser(prog=PROG, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("source", help="a run directory, a checkpoint (.pt) or a policy.npz")
     parser.add_argument("-o", "--output", type=Path, required=True,
@@ -90,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         path = export(args.source, args.output)
-    except PolicyError as exc:
+    except (PolicyError, OutputError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     print(f"{PROG}: wrote {path} ({path.stat().st_size:,} bytes)")

@@ -61,6 +61,7 @@ from tpdeb.services.policy_file import POLICY_FILE, acting_arrays, policy_bytes,
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.seeding import seed_everything
 from tpdeb.services.store.checkpoint import (
+    BEST_CHECKPOINT,
     FINAL,
     PERIODIC,
     VersionMark,
@@ -70,9 +71,8 @@ from tpdeb.services.store.checkpoint import (
     save_training,
     set_aside,
     spec_problem,
-    write_atomic,
 )
-from tpdeb.services.store.diskio import DiskGuard
+from tpdeb.services.store.diskio import DiskGuard, write_atomic
 from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
 from tpdeb.tpdeb_core.learner import Batch, Learner, place
 from tpdeb.tpdeb_core.model import state_arrays
@@ -102,6 +102,7 @@ class LearnerService:
         self.budget = Budget(config.total_timesteps, config.train_for_seconds)
         self.ended_by: str | None = None
         restored_version = -1
+        self.resumed = resume is not None
         if resume is not None:
             restored_version = self.restore(*resume)
         elif config.resume == "never":
@@ -131,6 +132,7 @@ class LearnerService:
         self.replay_items = config.prioritized_capacity + (
             config.uniform_capacity_steps // config.fragment_len)
         self.lag_sum, self.lag_count = 0.0, 0
+        self.evaluations_logged = 0
         self.recent_returns: deque[float] = deque(maxlen=20)
         self.sums: dict[str, float] = {}
         self.count = 0
@@ -154,7 +156,8 @@ class LearnerService:
 
     def _writers(self) -> None:
         """The run dir's writers, each of which a full disk costs writes, not the run."""
-        self.metrics = MetricsWriter(self.run_dir, log)
+        self.metrics = MetricsWriter(self.run_dir, log,
+                                     self.global_step if self.resumed else None)
         self.checkpoint_guard = DiskGuard(
             "periodic checkpoint", checkpoint_dir(self.run_dir), log, retry_s=0.0,
             consequence="training goes on and the previous checkpoint stays valid; the next is "
@@ -493,6 +496,8 @@ class LearnerService:
                 self.replay_stats = stats.values
             elif stats.role == "link":
                 self.link_stats = stats.values
+            elif stats.role == "evaluator":
+                self.on_evaluation(stats.values)
             elif stats.role == "actor":
                 self.actors_heard.add(stats.ident)
                 self.actor_stats[stats.ident] = stats.values
@@ -501,6 +506,34 @@ class LearnerService:
                     self.recent_returns.append(ret)
                     self.metrics.log(self.global_step, {"charts/episodic_return": ret,
                                                         "charts/episodic_length": length})
+
+    def on_evaluation(self, values: dict) -> None:
+        """An evaluator's report (its stats): each new evaluation logged once, at the global
+        step it was made at; a new best answered with checkpoints/best.pt."""
+        count = int(values.get("eval/count", 0))
+        if count <= self.evaluations_logged:
+            return  # a heartbeat, or a report already logged
+        self.evaluations_logged = count
+        step = int(values.get("eval/global_step", self.global_step))
+        self.metrics.log(step, {k: v for k, v in values.items()
+                                if k in ("eval/mean_return", "eval/std_return",
+                                         "eval/mean_length")})
+        if values.get("eval/best"):
+            self.save_best(float(values["eval/mean_return"]), int(values["eval/param_version"]))
+
+    def save_best(self, mean_return: float, evaluated_version: int) -> Path | None:
+        """checkpoints/best.pt: the learner's state when a new best evaluation came, with the
+        version evaluated (inline, the same; from an evaluator, a few updates before)."""
+        written = []
+
+        def write() -> None:
+            written.append(save_training(
+                self.run_dir, self.learner, self.config, self.global_step, "best",
+                self.param_version(), self.spec, self.budget.elapsed(), name=BEST_CHECKPOINT,
+                extra={"eval_mean_return": mean_return, "eval_version": evaluated_version}))
+
+        self.checkpoint_guard.attempt(write)
+        return written[0] if written else None
 
     def mean_return(self) -> float:
         return float(np.mean(self.recent_returns)) if self.recent_returns else float("nan")
@@ -574,7 +607,10 @@ class LearnerService:
         # Nothing trained, nothing to keep (and a 0-step file would only shadow nothing).
         self.send_priorities(None)  # the last batch's, where they wait a turn
         self.wait_for_compile()
-        path = self.save_checkpoint(FINAL) if self.learner.updates else "none (no update yet)"
+        # Only the end of the run's budget makes the final checkpoint; a stopped run's last is
+        # a periodic one, which the next start resumes from like any other.
+        path = (self.save_checkpoint(FINAL if finished else PERIODIC) if self.learner.updates
+                else "none (no update yet)")
         if self.learner.updates:
             self.write_policy()
         if finished:

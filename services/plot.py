@@ -16,9 +16,11 @@ import dataclasses
 import json
 import math
 import sys
+import textwrap
 from pathlib import Path
 
-from tpdeb.services.config import flat
+from tpdeb.services.config import Parser, flat
+from tpdeb.services.store.diskio import OutputError, writable_path
 from tpdeb.services.store.metrics import read_metrics
 
 if sys.version_info >= (3, 11):
@@ -30,6 +32,7 @@ PROG = "tpdeb-plot"
 # Settings that do not make a run a different variant.
 NOT_A_VARIANT = {"seed", "run_dir", "log_interval_s", "torch_threads", "preset",
                  "total_timesteps", "env_id"}
+LEGEND_WIDTH = 42  # characters per legend line: a legend stays inside its panel
 
 
 class PlotError(Exception):
@@ -81,7 +84,8 @@ def smooth(values, window: int):
 
 
 def variant_labels(runs: list[Run]) -> list[str]:
-    """Each run's variant, named by the settings on which the variants differ."""
+    """Each run's variant, named by the settings on which the variants differ (a setting a
+    run's config does not hold is left out of its name, not written `=None`)."""
     keys = sorted({k for r in runs for k in r.settings})
     differing = [k for k in keys if len({json.dumps(r.settings.get(k)) for r in runs}) > 1]
     if "algo" in differing:  # what an algorithm fixes follows from its name
@@ -91,7 +95,7 @@ def variant_labels(runs: list[Run]) -> list[str]:
         differing = [k for k in differing if k not in implied]
     labels = []
     for r in runs:
-        parts = [f"{k}={r.settings.get(k)}" for k in differing]
+        parts = [f"{k}={r.settings[k]}" for k in differing if r.settings.get(k) is not None]
         labels.append(", ".join(parts) if parts else str(r.settings.get("algo", "run")))
     return labels
 
@@ -118,9 +122,11 @@ def draw(runs: list[Run], metric: str, output: Path, window: int) -> list[str]:
             curves = [np.interp(grid, r.steps, smooth(r.values, window)) for r in members]
             mean, std = np.mean(curves, axis=0), np.std(curves, axis=0)
             seeds = f"{len(members)} seed" + ("s" if len(members) > 1 else "")
-            band(ax, grid, mean, std, f"C{n % 10}", f"{label} ({seeds})")
+            band(ax, grid, mean, std, f"C{n % 10}",
+                 textwrap.fill(f"{label} ({seeds})", LEGEND_WIDTH))
             finals = [smooth(r.values, window)[-1] for r in members]
-            lines.append(f"{env_id} | {label} | {len(members)} runs | final {metric} "
+            count = f"{len(members)} run{'s' * (len(members) != 1)}"
+            lines.append(f"{env_id} | {label} | {count} | final {metric} "
                          f"{np.mean(finals):,.1f} ± {np.std(finals):,.1f}")
         label_axes(ax, env_id, metric)
     save(fig, output)
@@ -151,7 +157,7 @@ def save(fig, path: Path) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog=PROG, description=__doc__,
+    parser = Parser(prog=PROG, description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("runs", nargs="+", type=Path, help="run directories")
     parser.add_argument("-o", "--output", type=Path, default=Path("curves.png"),
@@ -164,6 +170,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.window < 1:
             raise PlotError(f"--window {args.window}: must be ≥ 1")
+        writable_path(args.output, "-o")
         runs = [read_run(path, args.metric) for path in args.runs]
         empty = [str(r.path) for r in runs if not r.values]
         if empty:
@@ -173,7 +180,9 @@ def main(argv: list[str] | None = None) -> int:
             lines = draw(runs, args.metric, args.output, args.window)
         except ImportError:
             raise PlotError("tpdeb-plot needs matplotlib: pip install 'tpdeb[plot]'") from None
-    except PlotError as exc:
+        except OSError as exc:  # the disk refused after the check (full, gone)
+            raise OutputError.of("-o", args.output, exc) from None
+    except (PlotError, OutputError) as exc:
         print(f"{PROG}: error: {exc}", file=sys.stderr)
         return 2
     print("\n".join(lines))

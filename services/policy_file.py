@@ -8,7 +8,7 @@ env id and keyword arguments, dims, obs_clip, the policy's std kind. The learner
 its run dir beside each final checkpoint; `tpdeb-export` writes one from any checkpoint.
 
     policy = load_policy("runs/Hopper-v5__tpdeb__1__1700000000")   # a run dir, .npz or .pt
-    action = policy.act(obs)                        # [obs_dim] → [act_dim], or a batch
+    action = policy.act(obs, deterministic=True)    # [obs_dim] → [act_dim], or a batch
 """
 
 from __future__ import annotations
@@ -70,13 +70,15 @@ def policy_bytes(arrays: Mapping[str, np.ndarray], low, high, meta: dict) -> byt
 
 class Policy:
     """A trained Gaussian policy in numpy: observations normalised by the run's statistics,
-    the mean action (or a sample) clipped to the action bounds.
+    a sample (or the mean action) clipped to the action bounds.
 
     `act(obs)` takes one observation [obs_dim] or a batch [N, obs_dim] and returns [act_dim]
-    or [N, act_dim] float32; `deterministic=False` samples from the Gaussian with `rng`."""
+    or [N, act_dim] float32. `rng` is the policy's own generator for the samples, seeded 0 at
+    load: a script that loads and acts the same way gets the same actions."""
 
     def __init__(self, arrays: Mapping[str, np.ndarray], meta: dict, source: str = "policy"):
         self.meta, self.source = dict(meta), source
+        self.rng = np.random.default_rng(0)
         # What a policy file holds of it, besides the bounds and meta (to write one back).
         self.file_arrays = {k: np.asarray(v) for k, v in arrays.items()
                             if k not in ("action_low", "action_high")}
@@ -113,13 +115,17 @@ class Policy:
         raise PolicyError(f"an observation of shape {x.shape}, but this policy ({self.env_id}) "
                           f"takes ({self.obs_dim},) or (N, {self.obs_dim})")
 
-    def act(self, obs, deterministic: bool = True,
+    def act(self, obs, deterministic: bool = False,
             rng: np.random.Generator | None = None) -> np.ndarray:
+        """The action for `obs`, clipped to the action bounds. As Stable-Baselines3's
+        `predict(obs, deterministic=False)`, by default a sample from the Gaussian (noise from
+        `rng`, else the policy's own generator); `deterministic=True`: its mean, what tpdeb-eval
+        and the ONNX export act with."""
         x, single = self._batch(obs)
         x = normalize(x, self.obs_mean, self.obs_inv_std, self.obs_clip, NUMPY)
         mean, log_std = gaussian(self.mean_layers, self.log_std, x, NUMPY)
         if not deterministic:
-            rng = rng if rng is not None else np.random.default_rng()
+            rng = rng if rng is not None else self.rng
             noise = rng.standard_normal(mean.shape, dtype=np.float32)
             mean = sample(mean, log_std, noise, NUMPY)[0]
         action = np.clip(mean, self.low, self.high).astype(np.float32)
@@ -185,24 +191,32 @@ def env_bounds(env_id: str, env_kwargs: str, path: Path) -> tuple[np.ndarray, np
     return space.low, space.high
 
 
-def load_policy(target: str | Path, env_id: str | None = None) -> Policy:
-    """A run dir (its policy.npz, else its final checkpoint), a policy file or a checkpoint, as
-    a numpy `Policy`; `env_id` refuses one trained on another env. Only a checkpoint needs
-    torch, to read it."""
-    target = Path(target)
-    if target.is_dir():
-        found = target / POLICY_FILE
-        if not found.is_file():
-            from tpdeb.services.evaluate import EvalError, find_checkpoint
+def find_checkpoint(run_dir: Path) -> Path:
+    """A run dir's final checkpoint, else its newest one."""
+    from tpdeb.services.store.checkpoint import FINAL, checkpoint_dir, list_checkpoints
 
-            try:
-                found = find_checkpoint(target)
-            except EvalError as exc:
-                raise PolicyError(str(exc)) from None
-        target = found
-    elif not target.is_file():
-        raise PolicyError(f"{target}: no such run directory, policy file or checkpoint")
-    policy = read_policy_file(target) if target.suffix == ".npz" else from_checkpoint(target)
+    found = list_checkpoints(checkpoint_dir(run_dir))
+    if not found:
+        raise PolicyError(f"{run_dir}: no checkpoints in {checkpoint_dir(run_dir)} (has the "
+                          "learner written one yet?)")
+    finals = [c for c in found if c.tag == FINAL]
+    return (finals or found)[-1].path
+
+
+def load_policy(target: str | Path | Policy, env_id: str | None = None) -> Policy:
+    """A run dir (its policy.npz, else its final checkpoint), a policy file or a checkpoint, as
+    a numpy `Policy` (a `Policy` as it is); `env_id` refuses one trained on another env. Only a
+    checkpoint needs torch, to read it."""
+    if isinstance(target, Policy):
+        policy = target
+    else:
+        target = Path(target)
+        if target.is_dir():
+            found = target / POLICY_FILE
+            target = found if found.is_file() else find_checkpoint(target)
+        elif not target.is_file():
+            raise PolicyError(f"{target}: no such run directory, policy file or checkpoint")
+        policy = read_policy_file(target) if target.suffix == ".npz" else from_checkpoint(target)
     if env_id is not None and env_id != policy.env_id:
-        raise PolicyError(f"{target} was trained on {policy.env_id}, not {env_id}")
+        raise PolicyError(f"{policy.source} was trained on {policy.env_id}, not {env_id}")
     return policy

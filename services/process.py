@@ -24,6 +24,18 @@ def configure(cls, argv: list[str] | None, prog: str, description: str):
     return config
 
 
+def obey_control(sample, stop: StopSignal, log_bad) -> None:
+    """A control message heard: the learner's stop broadcast sets `stop`; a bad message is
+    logged through `log_bad` (rate-limited) and dropped."""
+    from tpdeb.protocol import Control, DecodeError, decode
+
+    try:
+        if decode(sample.payload.to_bytes(), Control).command == "stop":
+            stop.set("stop message")
+    except DecodeError as exc:
+        log_bad(exc.kind, f"dropped a bad control message ({exc})")
+
+
 def actor_id_file(run_id: str) -> Path:
     """Where an actor with `--actor-id auto` notes the id it got, for tpdeb-health (one actor
     per container: the file is the container's)."""

@@ -20,6 +20,7 @@ import time
 import torch
 
 from tpdeb.services.actor import ActorService
+from tpdeb.services.budget import clock
 from tpdeb.services.config import ConfigError, to_toml
 from tpdeb.services.config.presets import shown
 from tpdeb.services.config.service import (
@@ -30,11 +31,15 @@ from tpdeb.services.config.service import (
 from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.device import describe
 from tpdeb.services.envs import make_vector_env, space_dims
+from tpdeb.services.evaluate import make_env, run_episodes
+from tpdeb.services.evaluator import Best, Schedule, figures, policy_of, write_best_policy
 from tpdeb.services.learner import LearnerService
 from tpdeb.services.net.memory import MemoryBus
 from tpdeb.services.net.wire import run_spec
+from tpdeb.services.preflight import preflight, run_dir_resume
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.replay import ReplayServer
+from tpdeb.services.store.checkpoint import choose_resume
 from tpdeb.services.store.metrics import hyperparameter_table
 
 PROG = "tpdeb-train"
@@ -60,15 +65,24 @@ class SerialRunner:
         self.bus = MemoryBus()
         envs = make_vector_env(config.env_id, config.num_envs, config.env_kwargs)
         spec = run_spec(config, *space_dims(envs))
-        # The learner first: it seeds torch and numpy as its process does.
-        self.learner = LearnerService(config_of(LearnerServiceConfig, checkpoint_interval_s=0.0),
-                                      spec, self.bus.session(), self.stop)
+        # The learner first: it seeds torch and numpy as its process does. It resumes from the
+        # run dir's newest checkpoint as the cluster's does (`resume`); the replay is in memory
+        # and starts empty.
+        resume = choose_resume(config.resume, self.run_dir, lambda line: log.info(line))
+        self.learner = LearnerService(config_of(LearnerServiceConfig), spec, self.bus.session(),
+                                      self.stop, resume)
+        self.step_base = self.learner.global_step  # the env steps of the run being continued
         self.replay = ReplayServer(config_of(ReplayServiceConfig, persist=False), spec,
                                    self.bus.session(), self.stop)
         self.actor = ActorService(config_of(ActorServiceConfig, actor_id=0), spec, envs,
                                   self.bus.session(), self.stop)
         self.bus.pump = self._pump
         self.requests = 0
+        # Evaluation inline, between two updates (services/evaluator.py): its time is the run's.
+        self.schedule = Schedule(*config.eval_every())
+        self.best = Best(self.run_dir)
+        self.eval_env = None
+        self.eval_s = 0.0
 
     def _pump(self) -> None:
         self.replay.poll(0.0)
@@ -100,46 +114,81 @@ class SerialRunner:
         cfg, learner = self.config, self.learner
         self.run_dir.mkdir(parents=True, exist_ok=True)
         (self.run_dir / "config.toml").write_text(to_toml(cfg))
-        learner.metrics.text("hyperparameters", hyperparameter_table(cfg))
+        if not learner.resumed:
+            learner.metrics.text("hyperparameters", hyperparameter_table(cfg))
         learner.budget.restart_clock()
         log.info(f"run dir {self.run_dir} | {cfg.env_id} | {learner.budget.describe()} | seed "
                  f"{cfg.seed} | {cfg.algo} | preset: {shown(cfg.preset)} | learner on "
                  f"{describe(learner.device)}")
+        if learner.resumed:
+            log.info(f"continuing at {self.step_base:,} env steps and "
+                     f"{clock(learner.budget.spent_before)} of training; the replay is kept in "
+                     f"memory and starts empty, so updates wait for "
+                     f"{cfg.learning_starts_fragments} new fragments")
         learner.publish_params(eager=True)
         self.actor.wait_for_params()
-        start = last_log = time.perf_counter()
-        last_step, interrupted = 0, False
+        start = last_log = last_checkpoint = time.perf_counter()
+        last_step, interrupted = learner.global_step, False
         try:
             while not learner.limit_reached():
                 if self.actor.outbox.wait_for_room(0.0):
                     self.act()
                 self.replay.poll(0.0)
-                learner.global_step = self.replay.inserted_steps
+                learner.global_step = self.step_base + self.replay.inserted_steps
                 self.learn()
                 learner.drain_stats()
+                if self.schedule.due(learner.global_step, learner.budget.elapsed()):
+                    self.evaluate()
                 now = time.perf_counter()
                 if now - last_log >= cfg.log_interval_s:
                     self.replay.publish_stats()
                     learner.drain_stats()
                     learner.log_progress((learner.global_step - last_step) / (now - last_log))
                     last_log, last_step = now, learner.global_step
+                if cfg.checkpoint_interval_s and now - last_checkpoint >= cfg.checkpoint_interval_s:
+                    learner.periodic_checkpoint()
+                    last_checkpoint = now
         except KeyboardInterrupt:
             interrupted = True
             log.info("interrupted: writing the checkpoint and stopping")
         return self.finish(start, interrupted)
+
+    def evaluate(self) -> None:
+        """The current policy's evaluation, logged; a new best kept (best_policy.npz, best.pt)."""
+        learner, cfg = self.learner, self.config
+        started = time.perf_counter()
+        policy = policy_of(learner.learner.model.arrays(), learner.spec)
+        if self.eval_env is None:
+            self.eval_env = make_env(policy, video=False)
+        evaluation = run_episodes(policy, self.eval_env, cfg.eval_episodes, cfg.eval_seed)
+        step, version = learner.global_step, learner.param_version()
+        learner.metrics.log(step, figures(evaluation))
+        best = self.best.offer(evaluation, version, step)
+        if best:
+            write_best_policy(self.run_dir, policy)
+            learner.save_best(evaluation.mean, version)
+        self.schedule.done(step, learner.budget.elapsed())
+        self.eval_s += time.perf_counter() - started
+        log.info(f"evaluation at {step:,} env steps: {evaluation.mean:.1f} ± {evaluation.std:.1f}"
+                 f" over {len(evaluation.returns)} episodes{' (best so far)' if best else ''}")
 
     def finish(self, start: float, interrupted: bool) -> dict:
         learner = self.learner
         elapsed = time.perf_counter() - start
         self.replay.publish_stats()
         learner.drain_stats()
-        learner.log_progress(learner.global_step / max(elapsed, 1e-9))
+        learner.log_progress((learner.global_step - self.step_base) / max(elapsed, 1e-9))
         summary = {"global_step": learner.global_step, "mean_return": learner.mean_return(),
                    "updates": learner.learner.updates, "interrupted": interrupted,
-                   "elapsed_s": elapsed, "ended_by": learner.ended_by}
+                   "elapsed_s": elapsed, "ended_by": learner.ended_by, "eval_s": self.eval_s}
+        if self.eval_s:
+            log.info(f"evaluation took {self.eval_s:.1f} s of the run's {elapsed:.1f} s "
+                     f"({100 * self.eval_s / max(elapsed, 1e-9):.1f} %)")
         learner.finish(not interrupted)
         self.replay.close()
         self.actor.close()
+        if self.eval_env is not None:
+            self.eval_env.close()
         return summary
 
 
@@ -147,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = configure(TrainConfig, argv, PROG,
                            "Train TPDEB in one process (replay, learner and actor in memory).")
+        preflight(config)
+        run_dir_resume(config)
         runner = SerialRunner(config)
     except ConfigError as exc:
         return fail(PROG, exc)

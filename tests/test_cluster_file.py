@@ -19,19 +19,32 @@ def plan_for(tmp_path, text: str | None = None, *flags: str):
     if text is not None:
         path = tmp_path / "cluster.toml"
         path.write_text(text)
-        args += ["--config", str(path)]
+        args += ["--cluster-file", str(path)]
     return make_plan(parse_args([*args, "--run-dir", str(tmp_path / "run")]))
 
 
 def test_default_file_starts_router_replay_learner_then_two_actors(tmp_path):
     plan = plan_for(tmp_path)
-    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor"]
+    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor", "evaluator"]
     assert all(s.restart == RestartPolicy("on-failure") for s in plan.services)
     assert plan.restarts == RestartSettings(backoff_s=1.0, reset_after_s=60.0, max_restarts=5,
                                             window_s=120.0, max_backoff_s=30.0)
-    assert plan.services[-1].replicas == 2 and plan.train.num_envs == 4
+    assert actors(plan).replicas == 2 and plan.train.num_envs == 4
     assert plan.train.env_id == "HalfCheetah-v5"
     assert plan.endpoint.startswith("tcp/127.0.0.1:") and not plan.endpoint.endswith("auto")
+
+
+def actors(plan):
+    (spec,) = [s for s in plan.services if s.role == "actor"]
+    return spec
+
+
+def test_the_evaluator_is_optional_and_off_with_evaluation(tmp_path):
+    assert "evaluator" not in [s.role for s in plan_for(tmp_path, None, "--eval-interval",
+                                                        "0").services]
+    without = BASE[:BASE.index("[services.evaluator]")]
+    assert [s.role for s in plan_for(tmp_path, without).services] == [
+        "router", "replay", "learner", "actor"]
 
 
 def test_the_shells_training_variables_rank_below_flags_and_reach_no_child(tmp_path,
@@ -62,7 +75,7 @@ def test_each_child_runs_by_its_configuration_resolved_whole(tmp_path, monkeypat
     cluster = Cluster(plan_for(tmp_path, text, "--seed", "5", "--auth"))
     cluster.write_run_dir()
     names = [slot.name for slot in cluster.slots]
-    assert names == ["router", "replay", "learner", "actor-0", "actor-1"]
+    assert names == ["router", "replay", "learner", "actor-0", "actor-1", "evaluator"]
     configs = {}
     for slot in cluster.slots:
         path = cluster.run_dir / "config" / f"{slot.name}.toml"
@@ -106,7 +119,7 @@ def test_flags_override_the_file(tmp_path):
                     "--set", "learning_rate=3e-4", "--total-timesteps", "5000")
     assert (plan.train.env_id, plan.train.seed, plan.train.total_timesteps) == (
         "Hopper-v5", 7, 5000)
-    assert plan.train.learning_rate == 3e-4 and plan.services[-1].replicas == 3
+    assert plan.train.learning_rate == 3e-4 and actors(plan).replicas == 3
 
 
 BASE = (ROOT / "deploy" / "local.toml").read_text()
@@ -124,7 +137,7 @@ def test_restart_policies_and_limits_are_read(tmp_path):
     plan = plan_for(tmp_path, text)
     policies = {s.role: str(s.restart) for s in plan.services}
     assert policies == {"router": "always", "replay": "on-failure", "learner": "no",
-                        "actor": "on-failure:3"}
+                        "actor": "on-failure:3", "evaluator": "on-failure:3"}
     assert (plan.restarts.backoff_s, plan.restarts.max_restarts) == (0.25, 2)
 
 
@@ -139,7 +152,7 @@ def test_a_file_without_restart_settings_gets_the_defaults(tmp_path):
 def test_the_router_starts_first_whatever_the_file_order(tmp_path):
     section = BASE[BASE.index("[services.router]"):BASE.index("[services.replay]")]
     plan = plan_for(tmp_path, BASE.replace(section, "") + "\n" + section)
-    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor"]
+    assert [s.role for s in plan.services] == ["router", "replay", "learner", "actor", "evaluator"]
 
 
 def test_a_bad_restart_policy_names_the_value_and_the_choices(tmp_path):

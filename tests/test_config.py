@@ -128,7 +128,8 @@ def test_the_loss_settings_are_declared_once_and_help_shows_a_services_own_first
     assert {"zeta", "fragment_len", "gamma", "priority_mode"} <= replay
     assert not replay & {"learning_rate", "adam_eps", "kl_coef", "anneal_lr", "num_envs"}
     learner = {f.name for f in dataclasses.fields(LearnerServiceConfig)}
-    assert training - learner == {"num_envs", "trajectory_compression"}
+    assert training - learner == {"num_envs", "trajectory_compression", "eval_interval",
+                                  "eval_episodes"}
 
 
 def test_every_setting_has_one_table_and_files_list_them_in_order():
@@ -145,7 +146,7 @@ def test_every_setting_has_one_table_and_files_list_them_in_order():
     assert section_of(ReplayServiceConfig, "listen") == "net"  # redeclared: the group's table
     text = to_toml(TrainConfig())
     assert [line for line in text.splitlines() if line.startswith("[")] == [
-        "[run]", "[actor]", "[model]", "[replay]", "[learner]", "[loss]"]
+        "[run]", "[actor]", "[model]", "[replay]", "[learner]", "[loss]", "[eval]"]
 
 
 def test_a_service_reads_a_shared_train_file_and_takes_what_it_uses(tmp_path):

@@ -198,7 +198,7 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
     cluster_file = tmp_path / "cluster.toml"
     # long enough that the run is still going after the four kills and recoveries (~30 s)
     cluster_file.write_text(CLUSTER_FILE.format(endpoint=endpoint, env=ENV, steps=300000))
-    cluster = procs.spawn("cluster", "--config", str(cluster_file), "--run-dir", str(run_dir))
+    cluster = procs.spawn("cluster", "--cluster-file", str(cluster_file), "--run-dir", str(run_dir))
     procs.wait_for_line(cluster, "[learner] tpdeb-learner: run", timeout_s=120)
     session = open_session("client", [], [endpoint], connect_timeout_s=30)
     try:

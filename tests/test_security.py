@@ -355,7 +355,7 @@ def test_cluster_trains_with_tls_auth_and_access_control(procs, tmp_path):
     for name in ("users.txt", "ca.key", "router.key"):
         assert stat.S_IMODE((secrets_dir / name).stat().st_mode) == 0o600, name
     users = read_auth_file(secrets_dir / "users.txt")
-    assert set(users) == {"monitor", "replay", "learner", "actor-0", "actor-1"}
+    assert set(users) == {"monitor", "replay", "learner", "actor-0", "actor-1", "evaluator"}
     for path in run_dir.rglob("*"):  # no password anywhere else: configs, logs, checkpoints
         if path.is_file() and path.name != "users.txt":
             data = path.read_bytes()
@@ -540,8 +540,8 @@ def test_cluster_security_section_and_flags(tmp_path):
     def plan(security_lines: str = "", *flags: str):
         path = tmp_path / "cluster.toml"
         path.write_text(base.replace('certs_dir = ""\n', f'certs_dir = ""\n{security_lines}'))
-        return make_plan(parse_args(["--config", str(path), "--run-dir", str(tmp_path / "run"),
-                                     *flags]))
+        return make_plan(parse_args(["--cluster-file", str(path), "--run-dir",
+                                     str(tmp_path / "run"), *flags]))
 
     default = plan()
     assert default.endpoint.startswith("tcp/") and not default.security.enabled

@@ -176,7 +176,7 @@ def test_the_batch_script_runs_a_whole_run_and_stops_cleanly_on_scancel(slurm, t
     logs = {p.stem: p.read_text() for p in (run_dir / "logs").glob("*.log")}
     assert "stopped at" in logs["learner"] and "checkpoint" in logs["learner"], logs["learner"]
     assert "stopped (SIGTERM)" in logs["replay"], logs["replay"]
-    assert list((run_dir / "checkpoints").glob("final_*.pt"))
+    assert list((run_dir / "checkpoints").glob("ckpt_*.pt"))  # cancelled: no final one
     assert list((run_dir / "replay").glob("snapshot-*/COMPLETE"))
 
 

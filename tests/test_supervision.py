@@ -317,11 +317,12 @@ def test_nothing_is_restarted_after_ctrl_c(tmp_path):
 
 # -- real clusters
 
-def cluster_file(tmp_path, actor_args: str = "[]") -> Path:
-    """deploy/local.toml with quick restarts (and `args` for the actors)."""
+def cluster_file(tmp_path, actor_args: str = "[]", actor_env: str = "{}") -> Path:
+    """deploy/local.toml with quick restarts (and `args` and `env` for the actors)."""
     text = (ROOT / "deploy" / "local.toml").read_text()
     section = text[text.index("[services.actor]"):]
-    text = text.replace(section, section.replace("args = []", f"args = {actor_args}"))
+    text = text.replace(section, section.replace("args = []", f"args = {actor_args}", 1)
+                        .replace("env = {}", f"env = {actor_env}", 1))
     for old, new in (("restart_backoff_s = 1", "restart_backoff_s = 0.2"),
                      ("max_restarts = 5", "max_restarts = 2"),
                      ("crash_loop_window_s = 120", "crash_loop_window_s = 300")):
@@ -332,17 +333,27 @@ def cluster_file(tmp_path, actor_args: str = "[]") -> Path:
     return path
 
 
-def start_cluster(procs, tmp_path, total_timesteps: int, actor_args: str = "[]"):
+def start_cluster(procs, tmp_path, total_timesteps: int, actor_args: str = "[]",
+                  actor_env: str = "{}"):
     run_dir = tmp_path / "run"
-    proc = procs.spawn("cluster", "--config", str(cluster_file(tmp_path, actor_args)),
+    proc = procs.spawn("cluster", "--cluster-file",
+                       str(cluster_file(tmp_path, actor_args, actor_env)),
                        "--env-id", ENV, "--total-timesteps", str(total_timesteps),
                        "--num-envs", "2", "--run-dir", str(run_dir), "--set", "log_interval_s=1")
     return proc, run_dir
 
 
 def test_crash_looping_actors_stop_the_cluster_with_a_clear_message(procs, tmp_path):
+    # Actors that crash at start (exit status 3, before any work): a fault a restart may cure,
+    # so they are restarted until the crash-loop rule stops the run.
+    crashing = tmp_path / "crashing"
+    crashing.mkdir()
+    (crashing / "sitecustomize.py").write_text(
+        "import os, sys\nsys.stderr.write('tpdeb-actor: crashed on purpose\\n')\n"
+        "sys.stderr.flush()\nos._exit(3)\n")
     started = time.monotonic()
-    cluster, run_dir = start_cluster(procs, tmp_path, 1_000_000, '["--env-id", "Nope-v0"]')
+    cluster, run_dir = start_cluster(procs, tmp_path, 1_000_000,
+                                     actor_env=f'{{PYTHONPATH = "{crashing}"}}')
     assert cluster.wait(180) == 1, procs.output(cluster)[-3000:]
     out = procs.output(cluster)
     assert time.monotonic() - started < 180
@@ -351,18 +362,28 @@ def test_crash_looping_actors_stop_the_cluster_with_a_clear_message(procs, tmp_p
     name = lines[0].split("] ")[1].split()[0]
     assert name in ("actor-0", "actor-1")
     log = run_dir / "logs" / f"{name}.log"
-    assert "exited with code 2 after 2 restarts" in lines[0], lines[0]
+    assert "exited with code 3 after 2 restarts" in lines[0], lines[0]
     assert "max_restarts = 2 within crash_loop_window_s = 300 s" in lines[0]
     assert str(log) in lines[0]
     # the log's last lines follow the message: the actor's own reason
     after = out.splitlines()[out.splitlines().index(lines[0]) + 1:]
-    assert any("Nope-v0" in line and line.startswith("    ") for line in after[:3]), after[:3]
-    assert f"[tpdeb-cluster] {name} exited with code 2; restarting in 0.2 s (restart 1)" in out
-    assert f"[tpdeb-cluster] {name} exited with code 2; restarting in 0.4 s (restart 2)" in out
+    assert any("crashed on purpose" in line and line.startswith("    ")
+               for line in after[:3]), after[:3]
+    assert f"[tpdeb-cluster] {name} exited with code 3; restarting in 0.2 s (restart 1)" in out
+    assert f"[tpdeb-cluster] {name} exited with code 3; restarting in 0.4 s (restart 2)" in out
     text = log.read_text()
-    assert "--- restart #1 (exit code 2) ---" in text and "--- restart #2 (exit code 2) ---" in text
-    assert text.count("tpdeb-actor: error:") == 3  # started 3 times, refused each time
+    assert "--- restart #1 (exit code 3) ---" in text and "--- restart #2 (exit code 3) ---" in text
+    assert text.count("crashed on purpose") == 3  # started 3 times, crashed each time
     assert "tpdeb-cluster: stopped" in out
+    assert not pids_with(str(run_dir))
+
+
+def test_actors_that_refuse_their_configuration_stop_the_cluster_at_once(procs, tmp_path):
+    cluster, run_dir = start_cluster(procs, tmp_path, 1_000_000, '["--env-id", "Nope-v0"]')
+    assert cluster.wait(120) == 2, procs.output(cluster)[-3000:]
+    out = procs.output(cluster)
+    assert "refused its configuration (exit status 2), so the run stops" in out
+    assert "Nope-v0" in out and "restarting" not in out
     assert not pids_with(str(run_dir))
 
 
@@ -463,7 +484,7 @@ def hung_cluster(procs, tmp_path, endpoint, steps: int):
     assert "hang_intervals" in HUNG_FILE
     cluster_file.write_text(HUNG_FILE.format(endpoint=endpoint, env="InvertedPendulum-v5",
                                              steps=steps))
-    cluster = procs.spawn("cluster", "--config", str(cluster_file), "--run-dir", str(run_dir))
+    cluster = procs.spawn("cluster", "--cluster-file", str(cluster_file), "--run-dir", str(run_dir))
     procs.wait_for_line(cluster, "[learner] tpdeb-learner: [", timeout_s=120)
     return cluster, run_dir
 

@@ -1,8 +1,10 @@
 """Configuration: one dataclass per service, a docstring on every field, and from it the CLI.
 
-Precedence: dataclass defaults < `--config FILE.toml` < `TPDEB_*` environment variables <
-command-line flags. Field `learning_rate` is flag `--learning-rate` and variable
-`TPDEB_LEARNING_RATE`. Combinations are validated at start with the values in the message.
+Precedence: dataclass defaults < `--config FILE.toml` (a settings file) < `TPDEB_*` environment
+variables < command-line flags and `--set key=value`. Field `learning_rate` is flag
+`--learning-rate`, `--set learning_rate=…` and variable `TPDEB_LEARNING_RATE`, for every command
+that trains or serves. A name that is no setting is refused in one line with the closest one.
+Combinations are validated at start with the values in the message.
 """
 
 from __future__ import annotations
@@ -28,7 +30,8 @@ else:  # pragma: no cover
 
 ENV_PREFIX = "TPDEB_"
 # The tables of a TOML configuration, one per group of settings, in the order files list them.
-SECTIONS = ("run", "actor", "model", "replay", "learner", "loss", "net", "router", "link")
+SECTIONS = ("run", "actor", "model", "replay", "learner", "loss", "eval", "net", "router",
+            "link")
 
 
 class ConfigError(ValueError):
@@ -45,6 +48,61 @@ RETIRED = {
 
 def retired(name: str, source: str) -> ConfigError:
     return ConfigError(f"{source}: {name} was removed: {RETIRED[name]}")
+
+
+# TPDEB_* variables that are no setting: the deploy files' own (docker-compose.yml's image and
+# torch wheel, the Slurm script's layout) and the test suite's. Any other TPDEB_* variable that
+# names no setting is a typo, refused rather than silently ignored.
+OTHER_VARIABLES = ("IMAGE", "TORCH_SPEC", "ROUTER_HOST", "ROUTER_PORT", "PORT", "ACTORS_PER_NODE",
+                   "KEEP_FIGURES", "FUZZ_EXAMPLES")
+
+
+def closest(name: str, names) -> str:
+    """' (did you mean X?)' for the nearest of `names`, or ''."""
+    near = difflib.get_close_matches(name, list(names), n=1)
+    return f" (did you mean {near[0]!r}?)" if near else ""
+
+
+def unknown_setting(key: str, source: str) -> ConfigError:
+    """The one refusal of a name that is no setting, wherever it was given."""
+    if key in RETIRED:
+        return retired(key, source)
+    return ConfigError(f"{source}: unknown setting {key!r}{closest(key, known_settings())}")
+
+
+def check_environment(environ) -> None:
+    """Refuse a TPDEB_* variable that names no setting (one line, with the closest name)."""
+    known = {ENV_PREFIX + name.upper() for name in known_settings()}
+    known |= {ENV_PREFIX + name for name in (*OTHER_VARIABLES, "PASSWORD")}
+    for name in sorted(environ):
+        if not name.startswith(ENV_PREFIX) or name in known:
+            continue
+        setting = name[len(ENV_PREFIX):].lower()
+        if setting in RETIRED:
+            raise retired(setting, name)
+        raise ConfigError(f"{name}: no setting is named {setting!r}"
+                          f"{closest(name, sorted(known))}; unset it")
+
+
+def parse_sets(items, own=(), source: str = "--set") -> dict[str, str]:
+    """`--set KEY=VALUE` items as {setting: text}, every key a setting of some service (or one
+    of `own`, the command's)."""
+    values: dict[str, str] = {}
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        key = key.strip().replace("-", "_")
+        if not sep or not key:
+            raise ConfigError(f"{source} {item!r}: expected KEY=VALUE, e.g. --set "
+                              "learning_rate=3e-4")
+        if key not in known_settings() and key not in own:
+            raise unknown_setting(key, f"{source} {key}")
+        values[key] = value.strip()
+    return values
+
+
+def is_cluster_file(document: dict) -> bool:
+    """Whether a TOML document is a cluster file (its tables) rather than a settings file."""
+    return bool({"services", "cluster", "train"} & set(document))
 
 
 @functools.cache
@@ -151,12 +209,8 @@ def read_sections(cls, tables: dict, source: str, allowed: set[str] | None = Non
                               f"{', '.join(f'[{s}]' for s in SECTIONS if s in sections)}")
         for key, value in table.items():
             key = key.replace("-", "_")
-            if key in RETIRED:
-                raise retired(key, f"{source} [{section}]")
             if key not in known:
-                near = difflib.get_close_matches(key, known, n=1)
-                hint = f" (did you mean {near[0]!r}?)" if near else ""
-                raise ConfigError(f"{source} [{section}]: unknown setting {key!r}{hint}")
+                raise unknown_setting(key, f"{source} [{section}]")
             if known[key] != section:
                 raise ConfigError(f"{source} [{section}]: {key} belongs in [{known[key]}]")
             if key in names:
@@ -174,12 +228,44 @@ def known_settings() -> dict[str, str]:
             for cls in (TrainConfig, *SERVICE_CONFIGS.values()) for f in dataclasses.fields(cls)}
 
 
+class Parser(argparse.ArgumentParser):
+    """Every command's parser: a flag it does not know is refused in one line with the closest
+    flag (not argparse's usage block); `--help` shows the rest."""
+
+    def __init__(self, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(**kwargs)
+
+    def error(self, message: str):
+        hint = ""
+        if message.startswith("unrecognized arguments"):
+            flags = [a for a in message.split(":", 1)[1].split() if a.startswith("--")]
+            options = [o for o in self._option_string_actions if o.startswith("--")
+                       and self._option_string_actions[o].help != argparse.SUPPRESS]
+            if flags:
+                hint = closest(flags[0].partition("=")[0], options)
+        self.exit(2, f"{self.prog}: error: {message}{hint} ({self.prog} --help lists the "
+                     "flags)\n")
+
+
+SET_HELP = "any setting by name, e.g. --set learning_rate=3e-4 (repeatable; as its flag)"
+CONFIG_HELP = "settings file (TOML with any of the settings below, e.g. a run's config.toml)"
+
+
 def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
+    parser = Parser(prog=prog, description=description,
+                    formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    parser.add_argument("--config", help=CONFIG_HELP)
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE", default=argparse.SUPPRESS,
+                        help=SET_HELP)
+    add_setting_flags(parser, cls)
+    return parser
+
+
+def add_setting_flags(parser: argparse.ArgumentParser, cls) -> None:
+    """A flag per field of `cls` (`--learning-rate`), documented by the field's docstring; the
+    flags of other services' training settings, accepted and passed over; retired ones."""
     docs = field_docs(cls)
-    parser = argparse.ArgumentParser(
-        prog=prog, description=description, allow_abbrev=False,
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    parser.add_argument("--config", help="TOML file with any of the settings below")
     for f in _fields_derived_first(cls):
         kind, _ = _field_type(cls, f.name)
         flag = "--" + f.name.replace("_", "-")
@@ -204,11 +290,18 @@ def build_parser(cls, prog: str, description: str) -> argparse.ArgumentParser:
     for name in RETIRED:
         parser.add_argument("--" + name.replace("_", "-"), nargs="*", default=argparse.SUPPRESS,
                             dest=f"{_RETIRED}{name}", help=argparse.SUPPRESS)
-    return parser
 
 
 _OTHERS = "other service's "  # the dest prefix of the flags a service passes over
 _RETIRED = "removed setting "  # and of those that no longer exist
+
+
+def refuse_retired(args: dict) -> None:
+    """A parsed flag of a removed setting, refused with what replaced it."""
+    for key in args:
+        if key.startswith(_RETIRED):
+            name = key[len(_RETIRED):]
+            raise retired(name, "--" + name.replace("_", "-"))
 
 
 def training_names() -> set[str]:
@@ -228,31 +321,32 @@ def _fields_derived_first(cls) -> list:
     return sorted(dataclasses.fields(cls), key=lambda f: owner.get(f.name, len(cls.__mro__)))
 
 
-def resolve(cls, argv: list[str] | None, prog: str, description: str, environ=None):
+def resolve(cls, argv: list[str] | None, prog: str, description: str, environ=None,
+            base: dict | None = None):
     """Parse argv into a `cls` instance with the documented precedence (`environ`: the
-    variables to read, os.environ by default)."""
+    variables to read, os.environ by default; `base`: settings under the --config file's, of
+    which `cls`'s own are taken)."""
     environ = os.environ if environ is None else environ
     parser = build_parser(cls, prog, description)
     args = {k: v for k, v in vars(parser.parse_args(argv)).items()
             if not k.startswith(_OTHERS)}
-    for key in args:
-        if key.startswith(_RETIRED):
-            name = key[len(_RETIRED):]
-            raise retired(name, "--" + name.replace("_", "-"))
-    for name in RETIRED:
-        if ENV_PREFIX + name.upper() in environ:
-            raise retired(name, ENV_PREFIX + name.upper())
     names = {f.name for f in dataclasses.fields(cls)}
-    values: dict = {}
+    refuse_retired(args)
+    check_environment(environ)
+    sets = parse_sets(args.pop("set", ()), names)
+    values = {k: v for k, v in (base or {}).items() if k in names}
     config_path = args.pop("config", None)
     if config_path:
-        values.update(read_sections(cls, load_toml(config_path), f"--config {config_path}"))
+        values.update(read_settings_file(cls, config_path))
     for name in names:
         env_value = environ.get(ENV_PREFIX + name.upper())
         if env_value is not None:
             values[name] = coerce(cls, name, env_value, ENV_PREFIX + name.upper())
     for name, value in args.items():
         values[name] = coerce(cls, name, value, "--" + name.replace("_", "-"))
+    for name, value in sets.items():
+        if name in names:  # another service's setting is passed over, as its flag is
+            values[name] = coerce(cls, name, value, f"--set {name}")
     if "preset" in names:
         from tpdeb.services.config.presets import layer
 
@@ -263,6 +357,16 @@ def resolve(cls, argv: list[str] | None, prog: str, description: str, environ=No
         raise
     except ValueError as exc:  # __post_init__ validation
         raise ConfigError(str(exc)) from None
+
+
+def read_settings_file(cls, path) -> dict:
+    """`cls`'s values from a settings file (`--config`); a cluster file is named as one."""
+    document = load_toml(path)
+    if is_cluster_file(document):
+        raise ConfigError(f"--config {path} is a cluster file (it has "
+                          f"{', '.join(f'[{t}]' for t in sorted(document))}): tpdeb-cluster "
+                          "takes it as --cluster-file; --config takes a settings file")
+    return read_sections(cls, document, f"--config {path}")
 
 
 def to_toml(config) -> str:

@@ -4,6 +4,7 @@
     replay   NetConfig + SamplingConfig (run, model, replay, priorities) + its own
     learner  NetConfig + LearningConfig (SamplingConfig, learner, loss) + its own
     actor    NetConfig + RunSettings + ActingSettings + its own
+    evaluator  NetConfig + RunSettings + EvalSettings
 
 `NetConfig` is what every process on the network needs (run id, endpoints, security, stats,
 logging). Each group is a table of the TOML file, so one file (train.toml) configures every
@@ -18,6 +19,7 @@ from pathlib import Path
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.train import (
     ActingSettings,
+    EvalSettings,
     LearningConfig,
     RunSettings,
     SamplingConfig,
@@ -179,25 +181,12 @@ class LearnerServiceConfig(NetConfig, LearningConfig):
     """sample requests kept outstanding at the replay server so the learner never waits"""
     request_timeout_s: float = 30.0
     """a sample request unanswered this long is abandoned and asked again"""
-    checkpoint_interval_s: float = 60.0
-    """seconds between periodic checkpoints in {run_dir}/checkpoints (0: only the final one)"""
-    keep_checkpoints: int = 3
-    """periodic checkpoints kept; older ones are deleted once a newer one is in place"""
-    resume: str = "auto"
-    """auto: continue from the run dir's newest loadable checkpoint (a fresh start if there is
-    none) | never: start fresh (earlier checkpoints are moved aside) | PATH: continue from that
-    checkpoint file"""
 
     def __post_init__(self):
         super().__post_init__()
         check(self, [
             (self.requests_in_flight >= 1, "requests_in_flight", "must be ≥ 1"),
-            (self.checkpoint_interval_s >= 0, "checkpoint_interval_s",
-             "must be ≥ 0 (0 turns periodic checkpoints off)"),
-            (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
         ])
-        if not self.resume.strip():
-            raise ConfigError("resume='': use auto, never or the path of a checkpoint")
 
 
 @dataclass
@@ -231,6 +220,13 @@ class ActorServiceConfig(NetConfig, RunSettings, ActingSettings):
         self.outbox_fragments = self.outbox_fragments or 2 * self.num_envs
 
 
+@dataclass
+class EvaluatorServiceConfig(NetConfig, RunSettings, EvalSettings):
+    """The evaluator's settings: the network's, the run's and the evaluation's."""
+
+    SECTION = "eval"
+
+
 def read_password_file(path: str) -> str:
     try:
         lines = Path(path).read_text().splitlines()
@@ -242,4 +238,5 @@ def read_password_file(path: str) -> str:
 
 
 SERVICE_CONFIGS = {"router": RouterConfig, "replay": ReplayServiceConfig,
-                   "learner": LearnerServiceConfig, "actor": ActorServiceConfig}
+                   "learner": LearnerServiceConfig, "actor": ActorServiceConfig,
+                   "evaluator": EvaluatorServiceConfig}

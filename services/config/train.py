@@ -64,6 +64,7 @@ class RunSettings:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         check(self, [
+            (0 <= self.seed < 2**31, "seed", "must be an integer in [0, 2^31)"),
             (self.total_timesteps >= 1, "total_timesteps", "must be ≥ 1"),
             (math.isfinite(self.train_for_seconds) and self.train_for_seconds >= 0,
              "train_for_seconds", "must be a finite number ≥ 0 (0: no limit)"),
@@ -95,6 +96,47 @@ class ActingSettings:
             (self.trajectory_compression in ("none", "zstd"), "trajectory_compression",
              "must be none or zstd"),
         ])
+
+
+@dataclass
+class EvalSettings:
+    """Evaluation while training: the current policy, deterministically, on envs of its own."""
+
+    SECTION = "eval"
+
+    eval_interval: str = "100000"
+    """env steps between evaluations of the current policy, or seconds with an s suffix
+    ('60s'); 0: none. Each logs eval/mean_return (metrics, TensorBoard) and a new best is kept
+    as best_policy.npz and checkpoints/best.pt"""
+    eval_episodes: int = 5
+    """episodes per evaluation (episode i from reset(seed = 2^31 + seed + i): the same starts
+    every time, and none an actor's env uses)"""
+
+    def __post_init__(self):
+        chain_post_init(EvalSettings, self)
+        try:
+            self.eval_every()
+        except ValueError:
+            raise ConfigError(f"eval_interval={self.eval_interval!r}: expected env steps (100000), "
+                              "seconds with an s suffix (60s) or 0 (no evaluation)") from None
+        check(self, [(self.eval_episodes >= 1, "eval_episodes", "must be ≥ 1")])
+
+    def eval_every(self) -> tuple[int, float]:
+        """(env steps, seconds) between evaluations; one of them 0. (0, 0): none."""
+        text = str(self.eval_interval).strip().lower()
+        if text.endswith("s"):
+            seconds = float(text[:-1])
+            if not (math.isfinite(seconds) and seconds >= 0):
+                raise ValueError(text)
+            return 0, seconds
+        steps = int(float(text))
+        if steps < 0 or steps != float(text):
+            raise ValueError(text)
+        return steps, 0.0
+
+    @property
+    def eval_seed(self) -> int:
+        return (2**31 + self.seed) % 2**32
 
 
 def chain_post_init(cls, obj) -> None:
@@ -217,6 +259,14 @@ class LearnerSettings:
     """auto: the update runs eagerly from the first batch while torch.compile prepares it in
     the background (the cache under ~/.cache/tpdeb makes later starts quick), then runs
     compiled | off: eager throughout (for debugging the loss)"""
+    checkpoint_interval_s: float = 60.0
+    """seconds between periodic checkpoints in {run_dir}/checkpoints (0: only the final one)"""
+    keep_checkpoints: int = 3
+    """periodic checkpoints kept; older ones are deleted once a newer one is in place"""
+    resume: str = "auto"
+    """auto: continue from the run dir's newest loadable checkpoint (a fresh start if there is
+    none) | never: start fresh (earlier checkpoints are moved aside) | PATH: continue from that
+    checkpoint file"""
 
     def __post_init__(self):
         chain_post_init(LearnerSettings, self)
@@ -226,6 +276,10 @@ class LearnerSettings:
              "must be float32 or float16"),
             (self.torch_threads >= 1, "torch_threads", "must be ≥ 1"),
             (self.compile in COMPILE_MODES, "compile", f"must be one of {COMPILE_MODES}"),
+            (self.checkpoint_interval_s >= 0, "checkpoint_interval_s",
+             "must be ≥ 0 (0 turns periodic checkpoints off)"),
+            (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
+            (bool(self.resume.strip()), "resume", "use auto, never or the path of a checkpoint"),
             (check_device_setting(self.device) is None, "device",
              check_device_setting(self.device) or ""),
         ])
@@ -305,6 +359,6 @@ class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
 
 
 @dataclass
-class TrainConfig(LearningConfig, ActingSettings):
+class TrainConfig(LearningConfig, ActingSettings, EvalSettings):
     """Everything a training run is set by: the run, acting, the replay, the networks, the loss
     and the optimiser (the single-process runner and the cluster's [train] hold it whole)."""

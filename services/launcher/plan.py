@@ -12,13 +12,16 @@ from pathlib import Path
 
 from tpdeb.services.config import (
     ENV_PREFIX,
-    RETIRED,
     ConfigError,
+    check_environment,
     coerce,
+    is_cluster_file,
     known_settings,
     load_toml,
+    parse_sets,
     read_sections,
-    retired,
+    read_settings_file,
+    refuse_retired,
 )
 from tpdeb.services.config.presets import layer
 from tpdeb.services.config.train import TrainConfig
@@ -27,7 +30,8 @@ from tpdeb.services.net.security import SECURITY_KEYS, ClusterSecurity
 
 ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_FILE = ROOT / "deploy" / "local.toml"
-ROLES = ("router", "replay", "learner", "actor")
+ROLES = ("router", "replay", "learner", "actor", "evaluator")
+OPTIONAL = ("evaluator",)  # a cluster file without its section runs without it
 SERVICE_KEYS = {"command", "replicas", "depends_on", "args", "env", "restart"}
 CLUSTER_KEYS = {"run_id", "endpoint", "stop_timeout_s", "start_timeout_s", "hang_intervals",
                 *RESTART_KEYS}
@@ -91,8 +95,12 @@ def start_order(services: dict[str, ServiceSpec]) -> list[ServiceSpec]:
 
 def make_plan(args: argparse.Namespace) -> Plan:
     """The cluster file with the flags and the shell's variables on top, checked whole."""
-    path = Path(args.config) if args.config else DEFAULT_FILE
-    data = load_toml(path)
+    path = Path(args.cluster_file) if args.cluster_file else DEFAULT_FILE
+    data = load_toml(path, "--cluster-file")
+    if not is_cluster_file(data) and data:
+        raise ConfigError(f"--cluster-file {path} is a settings file (it has "
+                          f"{', '.join(f'[{t}]' for t in sorted(data))}): pass it as --config, "
+                          "on top of a cluster file")
     unknown = set(data) - {"cluster", "train", "services", "link", "security"}
     if unknown:
         raise ConfigError(f"{path}: unknown section(s) {sorted(unknown)}; expected cluster, "
@@ -112,11 +120,13 @@ def make_plan(args: argparse.Namespace) -> Plan:
     link_endpoint = ""
     if any(link.get(k, 0) for k in LINK_KEYS[:4]):  # the link forwards TLS bytes unchanged
         link_endpoint = security.endpoint(f"tcp/127.0.0.1:{free_port()}")
+    train = train_settings(data.get("train", {}), args, f"{path} [train]")
+    if train.eval_every() == (0, 0.0):  # eval_interval = 0: no evaluation, no evaluator
+        services.pop("evaluator", None)
     return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
                 stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
                 start_timeout_s=float(cluster.get("start_timeout_s", 120)),
-                train=train_settings(data.get("train", {}), args, f"{path} [train]"),
-                services=start_order(services), source=str(path), link=link,
+                train=train, services=start_order(services), source=str(path), link=link,
                 link_endpoint=link_endpoint,
                 restarts=RestartSettings.from_section(cluster, path), security=security,
                 hang_intervals=hang_intervals(cluster, path))
@@ -144,7 +154,7 @@ def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, S
         restart = RestartPolicy.parse(body.pop("restart", "on-failure"),
                                       f"{path} [services.{role}]")
         services[role] = ServiceSpec(role=role, restart=restart, **body)
-    missing = set(ROLES) - set(services)
+    missing = set(ROLES) - set(OPTIONAL) - set(services)
     if missing:
         raise ConfigError(f"{path}: services {sorted(missing)} are missing (see "
                           f"{DEFAULT_FILE} for their sections)")
@@ -157,35 +167,31 @@ def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, S
         if spec.replicas < (1 if spec.role == "actor" else 0) or (
                 spec.role != "actor" and spec.replicas != 1):
             raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
-                              "replay and the learner run once, actors at least once")
+                              "replay, the learner and the evaluator run once, actors at least "
+                              "once")
     return services
 
 
 def train_settings(section: dict, args: argparse.Namespace, source: str) -> TrainConfig:
-    """[train] (its tables [train.run], [train.loss], …) < the shell's TPDEB_* training
-    variables < the flags and --set."""
+    """[train] (its tables [train.run], [train.loss], …) < `--config FILE` < the shell's
+    TPDEB_* training variables < the flags and --set, as every service takes them."""
+    check_environment(os.environ)
+    refuse_retired(vars(args))
     train = read_sections(TrainConfig, section, source)
+    if args.config:
+        train.update(read_settings_file(TrainConfig, args.config))
     # The variables are resolved here once, so that train.toml is the whole training
     # configuration and no child applies them again on top of a flag (see child_environment).
     train.update({name: coerce(TrainConfig, name, value, ENV_PREFIX + name.upper())
                   for name, value in train_variables(os.environ).items()})
-    overrides = {"env_id": args.env_id, "env_kwargs": getattr(args, "env_kwargs", None),
-                 "total_timesteps": args.total_timesteps,
-                 "train_for_seconds": args.train_for_seconds,
-                 "seed": args.seed, "run_dir": args.run_dir, "num_envs": args.num_envs}
-    train.update({k: v for k, v in overrides.items() if v is not None})
-    for item in args.set or []:
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
-        key = key.strip().replace("-", "_")
-        if key in RETIRED:
-            raise retired(key, f"--set {key}")
-        train[key] = value.strip()
     names = {f.name for f in dataclasses.fields(TrainConfig)}
-    if set(train) - names:
-        raise ConfigError(f"train setting(s) {sorted(set(train) - names)} do not exist "
-                          "(tpdeb-train --help lists them)")
+    train.update({k: coerce(TrainConfig, k, v, "--" + k.replace("_", "-"))
+                  for k, v in vars(args).items() if k in names})
+    for key, value in parse_sets(args.set).items():
+        if key not in names:
+            raise ConfigError(f"--set {key}: {key} is a service setting, not a training one; "
+                              "give it in the service's `args` in the cluster file")
+        train[key] = coerce(TrainConfig, key, value, f"--set {key}")
     config = coerce_train(train)
     if not config.run_dir:
         config.run_dir = str(config.default_run_dir())

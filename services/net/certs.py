@@ -24,7 +24,7 @@ import re
 import sys
 from pathlib import Path
 
-from tpdeb.services.config import ConfigError
+from tpdeb.services.config import ConfigError, Parser
 
 PROG = "tpdeb-certs"
 FILES = ("ca.pem", "ca.key", "router.pem", "router.key")
@@ -155,7 +155,7 @@ def _certificates(hosts: list[str], days: int) -> tuple[tuple, tuple]:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(prog=PROG, description=__doc__.split("\n\n")[0],
+    p = Parser(prog=PROG, description=__doc__.split("\n\n")[0],
                                 epilog=__doc__.split("\n\n", 2)[2],
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("dir", metavar="DIR", help="directory to write ca.pem, ca.key, router.pem, "

@@ -4,7 +4,10 @@ the checkpoint to resume from, and the parameter-version mark.
 Files:
 - `ckpt_{updates}_{global_step}.pt`, written every `checkpoint_interval_s`; the newest
   `keep_checkpoints` stay.
-- `final_{updates}_{global_step}.pt`, written when the learner stops; never rotated away.
+- `final_{updates}_{global_step}.pt`, written when the run's budget is used up; never rotated
+  away. A run stopped before (Ctrl-C, SIGTERM) writes a `ckpt_` one, which resuming continues.
+- `best.pt`, the learner's state at the best evaluation while training (services/evaluator.py);
+  not a checkpoint to resume from.
 - `params_version.json`, the high-water mark of published parameter versions (`VersionMark`).
 
 Every file is written to a temp file in the same directory, fsynced and renamed (then the
@@ -17,9 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
 import re
-import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,10 +28,11 @@ from pathlib import Path
 import torch
 
 from tpdeb.services.config import ConfigError
-from tpdeb.services.store.persistence import fsync_dir
+from tpdeb.services.store.diskio import write_atomic
 from tpdeb.tpdeb_core.policy import policy_std_of
 
 PERIODIC, FINAL = "ckpt", "final"
+BEST_CHECKPOINT = "best.pt"  # the best evaluation's (services/evaluator.py); never resumed from
 _NAME = re.compile(r"(ckpt|final)_(\d+)_(\d+)\.pt")
 # What a checkpoint must hold to restore a learner (Learner.state_dict plus the run's counters).
 REQUIRED_KEYS = ("model", "target_policy", "optimizer", "kl_coef", "updates", "global_step",
@@ -40,24 +42,6 @@ VERSION_BLOCK = 1000
 
 def checkpoint_dir(run_dir: str | Path) -> Path:
     return Path(run_dir) / "checkpoints"
-
-
-def write_atomic(path: str | Path, write: Callable) -> Path:
-    """`write(file)` fills a temp file beside `path`, which then replaces `path` in one rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            write(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    fsync_dir(path.parent)
-    return path
 
 
 def save_atomic(state: dict, path: str | Path) -> Path:
@@ -83,16 +67,18 @@ def spec_fields(spec) -> dict:
 
 
 def save_training(run_dir: str | Path, learner, config, global_step: int, tag: str,
-                  version: int | None = None, spec=None, train_elapsed_s: float = 0.0) -> Path:
-    """The learner's full state as `{tag}_{updates}_{global_step}.pt` (train, env steps):
+                  version: int | None = None, spec=None, train_elapsed_s: float = 0.0,
+                  name: str | None = None, extra: dict | None = None) -> Path:
+    """The learner's full state as `{tag}_{updates}_{global_step}.pt` (train, env steps), or
+    `name` (with `extra` entries):
     model with its normalisers, target policy, optimiser, KL coefficient, update count, the
     parameter version (default: the update count), global step, the seconds of training so far
     (what a time limit counts), config and run spec."""
     state = {**learner.state_dict(), "config": dataclasses.asdict(config),
              "global_step": int(global_step), "train_elapsed_s": float(train_elapsed_s),
              "version": int(learner.updates if version is None else version),
-             "spec": spec_fields(spec) if spec is not None else None}
-    name = f"{tag}_{learner.updates}_{int(global_step)}.pt"
+             "spec": spec_fields(spec) if spec is not None else None, **(extra or {})}
+    name = name or f"{tag}_{learner.updates}_{int(global_step)}.pt"
     return save_atomic(state, checkpoint_dir(run_dir) / name)
 
 
@@ -202,16 +188,21 @@ def spec_problem(state: dict, spec) -> str | None:
 
 
 def set_aside(run_dir: str | Path) -> Path | None:
-    """Move the checkpoints of an earlier start into `checkpoints/before_{unix time}/`, so a fresh
-    start's checkpoints are the only ones `auto` and rotation see (nothing is deleted)."""
+    """Move the checkpoints of an earlier start, and the metrics, events, policy and end record
+    it wrote, into `checkpoints/before_{unix time}/`, so a fresh start's files are the only ones
+    `auto`, rotation and the plots see (nothing is deleted)."""
     directory = checkpoint_dir(run_dir)
-    old = list_checkpoints(directory) if directory.is_dir() else []
+    old = [c.path for c in list_checkpoints(directory)] if directory.is_dir() else []
     if not old:
         return None
+    run_dir = Path(run_dir)
+    old += [run_dir / name for name in ("metrics.jsonl", "end.json", "policy.npz")
+            if (run_dir / name).is_file()]
+    old += sorted(run_dir.glob("events.out.tfevents.*"))
     aside = directory / f"before_{time.time_ns() // 1_000_000}"
     aside.mkdir()
-    for ckpt in old:
-        ckpt.path.rename(aside / ckpt.path.name)
+    for path in old:
+        path.rename(aside / path.name)
     return aside
 
 

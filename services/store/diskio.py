@@ -11,8 +11,10 @@ tries again after `retry_s`, and says so when the disk takes writes again.
 from __future__ import annotations
 
 import contextlib
+import errno
 import logging
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -82,3 +84,65 @@ class DiskGuard:
                           f"skipped meanwhile)")
             self.failing, self.skipped = False, 0
         return True
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a rename or a new file in `path` durable: the directory entry must reach the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomic(path: str | Path, write: Callable) -> Path:
+    """`write(file)` fills a temp file beside `path`, which then replaces `path` in one rename."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    fsync_dir(path.parent)
+    return path
+
+
+class OutputError(ValueError):
+    """A path that cannot be written: one line with the flag or setting, the path and why."""
+
+    @classmethod
+    def of(cls, what: str, path: str | Path, exc: OSError) -> OutputError:
+        return cls(f"{what} {path}: cannot write there ({exc.strerror or exc})")
+
+
+def writable_path(path: str | Path, what: str, directory: bool = False) -> Path:
+    """`path` once it can be written — a file (`directory` False) or a directory to write in —
+    its missing directories made in the nearest one that exists, which must take a new file;
+    else OutputError naming `what`. Commands check before their work, so a bad path costs no
+    run, rollout or read and ends in one line; nothing is left behind."""
+    path = Path(path)
+    nearest = next(p for p in (path, *path.parents) if p.exists() or p == p.parent)
+    try:
+        if nearest == path and path.is_dir() != directory:
+            code = errno.EISDIR if path.is_dir() else errno.ENOTDIR
+            raise OSError(code, os.strerror(code))
+        if not nearest.is_dir():
+            raise OutputError(f"{what} {path}: cannot write there ({nearest} is a file, not a "
+                              "directory)")
+        if nearest == path and not directory:
+            with path.open("r+b"):
+                pass
+        else:  # writing in a directory is the one test that holds for permissions, read-only
+            with tempfile.TemporaryFile(dir=nearest):  # mounts and root alike
+                pass
+    except OSError as exc:
+        where = "" if nearest in (path, path.parent) else f" (in {nearest})"
+        raise OutputError(f"{what} {path}: cannot write there{where} "
+                          f"({exc.strerror or exc})") from None
+    return path

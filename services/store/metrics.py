@@ -13,7 +13,7 @@ import struct
 import time
 from pathlib import Path
 
-from tpdeb.services.store.diskio import AppendFile, DiskGuard
+from tpdeb.services.store.diskio import AppendFile, DiskGuard, write_atomic
 
 FLUSH_ROWS = 256  # rows held in memory at most between two flushes
 
@@ -35,9 +35,14 @@ class MetricsWriter:
     The events are written here, not by tensorboardX's writer thread, which dies on the first
     refused write and then blocks its caller for good once its queue is full."""
 
-    def __init__(self, run_dir: str | Path, log: logging.Logger | None = None):
+    def __init__(self, run_dir: str | Path, log: logging.Logger | None = None,
+                 resume_step: int | None = None):
+        """`resume_step`: the global step a resumed run continues from. The rows its
+        predecessor logged after that step (training lost with it) are dropped, the events go on
+        in the run's newest events file, and a session-start event at that step tells
+        TensorBoard to drop its later ones: both files rise monotonically, as one run."""
         from tensorboardX.crc32c import crc32c
-        from tensorboardX.proto.event_pb2 import Event
+        from tensorboardX.proto.event_pb2 import Event, SessionLog
         from tensorboardX.proto.summary_pb2 import Summary
 
         self._crc32c, self._Event, self._Summary = crc32c, Event, Summary
@@ -46,13 +51,21 @@ class MetricsWriter:
         log = log or logging.getLogger("tpdeb")
         path = self.run_dir / "metrics.jsonl"
         _drop_torn_line(path)
+        if resume_step is not None:
+            _drop_rows_after(path, resume_step)
         # Append: a restarted (resumed) process continues the file its predecessor wrote.
         self._jsonl = AppendFile(path)
-        self._events_path = self.run_dir / (f"events.out.tfevents.{int(time.time())}."
-                                            f"{socket.gethostname()}.{os.getpid()}")
+        earlier = sorted(self.run_dir.glob("events.out.tfevents.*"), key=os.path.getmtime)
+        self._events_path = earlier[-1] if resume_step is not None and earlier else (
+            self.run_dir / f"events.out.tfevents.{int(time.time())}.{socket.gethostname()}."
+                           f"{os.getpid()}")
         self._events_file: AppendFile | None = None
         self._rows: list[str] = []
         self._events: list[bytes] = []
+        if resume_step is not None:
+            self._events.append(self._record(Event(
+                wall_time=time.time(), step=int(resume_step),
+                session_log=SessionLog(status=SessionLog.START))))
         self.rows_guard = DiskGuard("metrics rows", path, log)
         self.events_guard = DiskGuard("TensorBoard events", self._events_path, log)
 
@@ -124,6 +137,22 @@ def _drop_torn_line(path: Path) -> None:
         f.seek(size - tail)
         end = f.read(tail).rfind(b"\n")
         f.truncate(size - tail + end + 1 if end >= 0 else (0 if tail == size else size))
+
+
+def _drop_rows_after(path: Path, step: int) -> None:
+    """Rewrite metrics.jsonl without the rows past `step` (atomically; untouched if none)."""
+    if not path.is_file():
+        return
+    def step_of(row: bytes) -> int:
+        try:
+            return int(json.loads(row).get("global_step", 0))
+        except (ValueError, AttributeError):
+            return 0
+
+    rows = path.read_bytes().splitlines(keepends=True)
+    kept = [r for r in rows if step_of(r) <= step]
+    if len(kept) < len(rows):
+        write_atomic(path, lambda f: f.write(b"".join(kept)))
 
 
 def read_metrics(path: str | Path) -> list[dict]:

@@ -40,6 +40,8 @@ from pathlib import Path
 import msgpack
 import numpy as np
 
+from tpdeb.services.store.diskio import fsync_dir
+
 _HEADER = struct.Struct("<II")
 _SEGMENT = "wal-{:08d}.log"
 _SNAPSHOT = "snapshot-{:08d}"
@@ -142,15 +144,6 @@ def read_records(path: Path, strict: bool,
                     torn(path, start)
                 return
             yield payload
-
-
-def fsync_dir(path: Path) -> None:
-    """Make a rename or a new file in `path` durable: the directory entry must reach the disk."""
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 def _file_crc(path: Path) -> int:
