@@ -53,11 +53,14 @@ def summary(runs: list[dict]) -> dict:
     for run in runs:
         pairs.setdefault(run["pair"], {})[run["variant"]] = run["env_steps_per_s"]
     costs = [1 - p["with"] / p["without"] for p in pairs.values() if len(p) == 2]
-    return {"pairs": len(costs), "costs": costs,
-            "median_cost": statistics.median(costs) if costs else None,
-            "median_with": statistics.median(p["with"] for p in pairs.values() if "with" in p),
-            "median_without": statistics.median(p["without"] for p in pairs.values()
-                                                if "without" in p)}
+
+    def median(values):
+        values = list(values)
+        return statistics.median(values) if values else None
+
+    return {"pairs": len(costs), "costs": costs, "median_cost": median(costs),
+            "median_with": median(p["with"] for p in pairs.values() if "with" in p),
+            "median_without": median(p["without"] for p in pairs.values() if "without" in p)}
 
 
 def main() -> None:
@@ -81,6 +84,7 @@ def main() -> None:
             data.update(env_id=args.env_id, seconds=args.seconds, summary=summary(data["runs"]))
             args.out.parent.mkdir(parents=True, exist_ok=True)
             args.out.write_text(json.dumps(provenance.stamp(data, record), indent=1) + "\n")
+            provenance.written(args.out)
             print(f"pair {pair} {variant:>7}: {result['env_steps_per_s']:,.0f} env steps/s, "
                   f"{result['evaluations']} evaluations", flush=True)
     s = summary(data["runs"])

@@ -410,7 +410,7 @@ PAGES = {
                           "tune/hc-long-klt0.2/", "chaos-30-fixed-kl"),
     "docs/RELIABILITY.md": ("chaos-", "soak", "crowd/", "faults/", "partition/",
                             "replay-snapshot", "fuzz", "tune/hc-long-klt0.2/"),
-    "docs/BENCHMARKS.md": ("gpu/", "capacity/", "crowd/", "learner/"),
+    "docs/BENCHMARKS.md": ("gpu/", "capacity/", "crowd/", "learner/", "eval/"),
 }
 BEGIN, END = "<!-- provenance:begin -->", "<!-- provenance:end -->"
 GRID_RESULTS = "docs/RESULTS.md"
