@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 import sys
 import time
 from pathlib import Path
@@ -36,6 +37,9 @@ from tpdeb.services.process import StopSignal, configure, fail, obey_control
 from tpdeb.services.store.diskio import write_atomic
 
 PROG = "tpdeb-evaluator"
+# Training comes first: on a machine whose cores the actors and the learner fill, the evaluator
+# takes what they leave (its reports come later, its figures are the same).
+NICENESS = 10
 log = logging.getLogger(PROG)
 BEST_POLICY = "best_policy.npz"
 BEST_RECORD = "best.json"
@@ -209,6 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         config = configure(EvaluatorServiceConfig, argv, PROG,
                            "TPDEB evaluator: runs the current policy deterministically every "
                            "eval_interval, for the learner to log and keep the best.")
+        os.nice(NICENESS)
         session = open_for(config)
     except ConfigError as exc:
         return fail(PROG, exc)
