@@ -116,6 +116,8 @@ class LearnerService:
         self.versions = VersionMark(checkpoint_dir(self.run_dir))
         self.version_offset = self.versions.offset(self.learner.updates, restored_version)
         if resume is not None:
+            # an earlier end's record no longer says how this run ends (written again at its end)
+            (self.run_dir / "end.json").unlink(missing_ok=True)
             log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
                       f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0

@@ -46,7 +46,7 @@ class Run:
     env_id: str
     ended_by: str | None  # "total_timesteps", "train_for_seconds", or "on_progress" (stopped)
     global_step: int
-    checkpoint: Path | None  # the final checkpoint
+    checkpoint: Path | None  # the final checkpoint (a stopped run's: its newest)
 
     @classmethod
     def read(cls, run_dir: str | os.PathLike, env_id: str | None = None) -> Run:
@@ -62,6 +62,13 @@ class Run:
         end_file = run_dir / "end.json"
         end = json.loads(end_file.read_text()) if end_file.is_file() else {}
         checkpoint = end.get("checkpoint")
+        if not end:  # stopped before its end (or still running): its newest checkpoint
+            from tpdeb.services.store.checkpoint import checkpoint_dir, list_checkpoints
+
+            found = list_checkpoints(checkpoint_dir(run_dir)) if (run_dir / "checkpoints"
+                                                                   ).is_dir() else []
+            if found:
+                checkpoint, end["global_step"] = str(found[-1].path), found[-1].global_step
         return cls(run_dir=run_dir, env_id=env_id, ended_by=end.get("ended_by"),
                    global_step=int(end.get("global_step", 0)),
                    checkpoint=Path(checkpoint) if checkpoint and Path(checkpoint).is_file()

@@ -149,6 +149,7 @@ def test_a_run_continues_from_python_and_a_progress_hook_stops_it(run, tmp_path)
                        num_envs=2, hidden_sizes=[32, 32], on_progress=on_progress,
                        log_interval_s=0.2)
     assert more.ended_by == "on_progress" and more.env_id == ENV
+    assert more.checkpoint.name.startswith("ckpt_") and more.global_step >= 3000
     assert seen[0][0] >= run.global_step  # the continued run's rows, not the earlier ones
     names = [p.name for p in (again / "checkpoints").glob("*.pt")]
     assert any(n.startswith("ckpt_") for n in names)  # a stopped run's checkpoint: not final
