@@ -440,6 +440,10 @@ def user_of(role: str, index: int) -> str:
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    return build_parser().parse_args(argv)
+
+
+def build_parser() -> Parser:
     """The cluster's own flags, and every training setting as tpdeb-train takes it (its flag,
     `--set`, `--config FILE`)."""
     p = Parser(prog=PROG, description=__doc__.split("\n\n")[0],
@@ -463,7 +467,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                        help=f"link shim {key} between actors and the rest (0 = off; overrides "
                        "[link])")
     add_setting_flags(p, TrainConfig)
-    return p.parse_args(argv)
+    return p
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -195,8 +195,12 @@ def render_check(env) -> None:
 
 
 def arguments(argv: list[str] | None) -> argparse.Namespace:
+    return build_parser().parse_args(argv)
+
+
+def build_parser() -> Parser:
     parser = Parser(prog=PROG, description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+                    formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("target", help="a checkpoint (.pt), a policy.npz or a run directory")
     parser.add_argument("--episodes", type=int, default=10, help="episodes to run (default 10)")
     parser.add_argument("--seed", type=int, default=0, help="episode i starts from seed + i")
@@ -207,7 +211,7 @@ def arguments(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--video", type=Path, help="write the episodes to this .mp4 file")
     parser.add_argument("--fps", type=int, default=0, help="video frame rate (default: the env's)")
     parser.add_argument("--json", action="store_true", help="print one JSON line")
-    return parser.parse_args(argv)
+    return parser
 
 
 def count(n: int, noun: str) -> str:

@@ -157,3 +157,36 @@ def test_every_service_takes_set_and_refuses_a_typo_in_one_line(capsys):
             resolve(cls, ["--set", "run_idd=x"], role, "")
     assert resolve(SERVICE_CONFIGS["actor"], ["--set", "zeta=0.5", "--set", "num_envs=3"],
                    "actor", "").num_envs == 3  # another service's setting is passed over
+
+
+def test_every_flag_on_a_readme_command_line_is_one_that_command_takes():
+    """A README command copied as it stands gets what it says: each of its flags exists."""
+    import re
+
+    from tpdeb.services import evaluate
+    from tpdeb.services.config import build_parser
+
+    def options(parser):
+        return set(parser._option_string_actions)
+
+    parsers = {
+        "tpdeb-train": options(build_parser(TrainConfig, "tpdeb-train", "")),
+        "tpdeb-cluster": options(cluster.build_parser()),
+        "tpdeb-eval": options(evaluate.build_parser()),
+        **{f"tpdeb-{role}": options(build_parser(cls, role, ""))
+           for role, cls in SERVICE_CONFIGS.items()},
+    }
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    checked = 0
+    for block in re.findall(r"```bash\n(.*?)```", text, re.S):
+        for line in block.replace("\\\n", " ").splitlines():
+            words = line.split("#")[0].split()
+            command = next((Path(w).name for w in words if Path(w).name in parsers), None)
+            if command is None:
+                continue
+            flags = [w.strip("[]").split("=")[0] for w in words if w.lstrip("[").startswith("--")]
+            for flag in flags:
+                assert flag in parsers[command], f"{command} {flag}: {line.strip()}"
+                checked += 1
+    assert checked > 20
+
