@@ -101,25 +101,12 @@ class LearnerService:
         self.global_step = 0
         self.budget = Budget(config.total_timesteps, config.train_for_seconds)
         self.ended_by: str | None = None
-        restored_version = -1
         self.resumed = resume is not None
-        if resume is not None:
-            restored_version = self.restore(*resume)
-        elif config.resume == "never":
-            aside = set_aside(self.run_dir)
-            if aside is not None:
-                log.info(f"--resume never: starting fresh; earlier checkpoints moved to {aside}")
+        self._start_from(resume)
         # The model's state tensors (views of its parameters and buffers, which every update and
         # restore changes in place): taken once, walking the module tree per publication costs
         # more than encoding the parameters.
         self.state = self.model.state_dict()
-        self.versions = VersionMark(checkpoint_dir(self.run_dir))
-        self.version_offset = self.versions.offset(self.learner.updates, restored_version)
-        if resume is not None:
-            # an earlier end's record no longer says how this run ends (written again at its end)
-            (self.run_dir / "end.json").unlink(missing_ok=True)
-            log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
-                      f"{self.param_version():,}, {self.global_step:,} env steps")
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self._writers()
         self.log_bad = rate_limited(log)
@@ -186,6 +173,24 @@ class LearnerService:
                          for i in range(self.config.requests_in_flight)]
 
     # -- checkpoints
+    def _start_from(self, resume: tuple[Path, dict] | None) -> None:
+        """The checkpoint restored (or, `--resume never`, the earlier start's files moved
+        aside), then the parameter versions placed above any published before."""
+        restored_version = -1
+        if resume is not None:
+            restored_version = self.restore(*resume)
+            # an earlier end's record no longer says how this run ends (written again at its end)
+            (self.run_dir / "end.json").unlink(missing_ok=True)
+        elif self.config.resume == "never":
+            aside = set_aside(self.run_dir)
+            if aside is not None:
+                log.info(f"--resume never: starting fresh; earlier files moved to {aside}")
+        self.versions = VersionMark(checkpoint_dir(self.run_dir))
+        self.version_offset = self.versions.offset(self.learner.updates, restored_version)
+        if resume is not None:
+            log.info(f"resumed from {resume[0]}: {self.learner.updates:,} updates, version "
+                     f"{self.param_version():,}, {self.global_step:,} env steps")
+
     def restore(self, path: Path, state: dict) -> int:
         """Load a checkpoint's learner state and counters; returns its parameter version."""
         cfg = self.config
