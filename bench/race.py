@@ -1,11 +1,21 @@
 """The race: the best policy each system gives in 15 minutes of wall-clock on this machine.
 
-    python bench/race.py                 # TPDEB: the six tasks × seeds 11-13, 15 minutes each
-    python bench/race.py --peers         # SB3 SAC and PPO, zoo hyperparameters, seed 11, on
-                                         # HalfCheetah, Hopper and Humanoid (needs '.[peers]')
+    python bench/race.py --sitting --envs Hopper-v5   # one task's race in one sitting: TPDEB
+                                         # seeds 11-15 and the peers (seed 11) interleaved
+    python bench/race.py                 # TPDEB alone: the six tasks × seeds 11-15
+    python bench/race.py --peers         # SB3 SAC and PPO alone, zoo hyperparameters, seed 11,
+                                         # on the six tasks (needs '.[peers]')
     python bench/race.py --report        # RESULTS' race table and docs/img/race/*.png
     python bench/race.py --envs Hopper-v5 --seeds 1 --minutes 5 --tag race-tune/NAME \\
         --set learning_rate=3e-4         # a tuning run of the race preset (seeds 1-3 only)
+
+A race is run as a race with `--sitting`: for each task, its TPDEB seeds and its peers' runs one
+after the other in one sitting (one session's machine: 5 TPDEB seeds and the two peers are ~105
+minutes), interleaved — TPDEB seed, SAC, PPO, TPDEB seed, … — so that a change of the machine's
+speed meets every system. Before each run the plain one-core acting loop (the task's vector env
+and a fresh policy in numpy, nothing else; `calibrate`) is timed for 10 s, and the run records
+that figure, its sitting (`--sitting-name`, default the UTC date and hour the bench started) and
+the machine, so runs of different sittings can be told apart and compared by their calibration.
 
 Each TPDEB run is a `tpdeb-cluster` with `--train-for-seconds` (the learner's clock, which
 starts with its loop: actors starting and the replay filling count) and the task's race preset
@@ -40,9 +50,10 @@ from runs import ROOT, read_run_metrics, run_cluster, save_json  # noqa: E402
 DATA = ROOT / "docs" / "data"
 OUT = ROOT / "bench" / "out"
 PRESETS = ROOT / "deploy" / "presets" / "race"
-REPORT_SEEDS = (11, 12, 13)
-PEER_ENVS = ("HalfCheetah-v5", "Hopper-v5", "Humanoid-v5")
+REPORT_SEEDS = (11, 12, 13, 14, 15)
+PEER_SEEDS = (11,)
 PEERS = ("sb3-sac", "sb3-ppo")
+CALIBRATION_S = 10.0
 NEVER = 10**9  # total_timesteps of a race run: the clock is what ends it
 
 
@@ -173,6 +184,30 @@ def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
     return result
 
 
+def interleaved(env_id: str, seeds: list[int], peer_seeds: list[int],
+                peers: tuple[str, ...] = PEERS) -> list[tuple[str, str, int]]:
+    """One task's sitting: each TPDEB seed, then (while they last) each peer at the next peer
+    seed — TPDEB 11, SAC 11, PPO 11, TPDEB 12, … — as (system, env, seed) jobs."""
+    jobs: list[tuple[str, str, int]] = []
+    for i, seed in enumerate(seeds):
+        jobs.append(("tpdeb", env_id, seed))
+        if i < len(peer_seeds):
+            jobs += [(peer, env_id, peer_seeds[i]) for peer in peers]
+    for peer_seed in peer_seeds[len(seeds):]:
+        jobs += [(peer, env_id, peer_seed) for peer in peers]
+    return jobs
+
+
+def calibrate(env_id: str, seconds: float = CALIBRATION_S) -> dict:
+    """The plain one-core acting loop's env steps/s on this task (its preset's envs per actor,
+    a fresh policy in numpy): what the machine gives right now, beside each run's figures."""
+    from throughput import bench_acting_limit, preset_config
+
+    result = bench_acting_limit(preset_config(env_id, 4, 0), seconds)
+    return {"env_id": env_id, "num_envs": 4, "env_steps_per_s": round(result["env_steps_per_s"]),
+            "seconds": round(result["seconds"], 1)}
+
+
 def marks_for(budget: float) -> list[float]:
     """Every 5 minutes up to the budget (seconds), and the budget."""
     marks = [300.0 * k for k in range(1, int(budget // 300) + 1)]
@@ -210,6 +245,12 @@ def main() -> None:
     parser.add_argument("--tag", default="race")
     parser.add_argument("--peers", action="store_true",
                         help="run the peers (SB3 SAC and PPO) instead of TPDEB")
+    parser.add_argument("--sitting", action="store_true",
+                        help="each task's TPDEB seeds and peers interleaved, in one sitting")
+    parser.add_argument("--peer-seeds", type=int, nargs="+",
+                        help=f"the peers' seeds in a sitting (default {list(PEER_SEEDS)})")
+    parser.add_argument("--sitting-name", default=time.strftime("%Y-%m-%dT%H", time.gmtime()),
+                        help="what the runs record as their sitting (default: UTC date, hour)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a training setting on top of the race preset (TPDEB runs)")
     parser.add_argument("--eval-episodes", type=int, default=10)
@@ -223,21 +264,30 @@ def main() -> None:
         if args.tag == "race":
             tuning_report(DATA / "race-tune")
         return
-    if args.peers and not peers_available():
+    if (args.peers or args.sitting) and not peers_available():
         sys.exit("race: the peers need the bench-only extra: .venv/bin/pip install -e '.[peers]'")
-    envs = args.envs or list(PEER_ENVS if args.peers else TASKS)
-    seeds = args.seeds or ([REPORT_SEEDS[0]] if args.peers else list(REPORT_SEEDS))
-    systems = PEERS if args.peers else ("tpdeb",)
-    jobs = [(system, env_id, seed) for seed in seeds for env_id in envs for system in systems]
+    envs = args.envs or list(TASKS)
+    if args.sitting:
+        seeds = args.seeds or list(REPORT_SEEDS)
+        jobs = [j for env_id in envs for j in interleaved(env_id, seeds,
+                                                           args.peer_seeds or list(PEER_SEEDS))]
+    else:
+        seeds = args.seeds or (list(PEER_SEEDS) if args.peers else list(REPORT_SEEDS))
+        systems = PEERS if args.peers else ("tpdeb",)
+        jobs = [(system, env_id, seed) for seed in seeds for env_id in envs
+                for system in systems]
     todo = [j for j in jobs if not result_path(args.tag, *j).exists()]
     print(f"[race] {args.tag}: {len(jobs)} runs of {args.minutes:g} minutes, "
-          f"{len(jobs) - len(todo)} already done; results in {DATA / args.tag}", flush=True)
+          f"{len(jobs) - len(todo)} already done; sitting {args.sitting_name}; results in "
+          f"{DATA / args.tag}", flush=True)
     for n, (system, env_id, seed) in enumerate(todo, 1):
-        print(f"[race] run {n}/{len(todo)}", flush=True)
+        print(f"[race] run {n}/{len(todo)}: calibrating ({CALIBRATION_S:g} s)", flush=True)
+        calibration = calibrate(env_id)
         result = (run_tpdeb(args, env_id, seed) if system == "tpdeb"
                   else run_peer(args, system, env_id, seed))
+        if result is not None:
+            result.update(sitting=args.sitting_name, calibration=calibration)
         finish(result_path(args.tag, system, env_id, seed), result)
-
 
 if __name__ == "__main__":
     main()

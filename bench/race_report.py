@@ -88,6 +88,32 @@ def goal(values: list[float], bar: float) -> str:
     return "met" if statistics.median(values) >= bar else "not met"
 
 
+def whole(values: list[float]) -> str:
+    """Seeds reported whole: mean ± std, and beside it the median (what the goal is judged on)
+    and the worst seed."""
+    if len(values) < 2:
+        return cell(values)
+    return f"{cell(values)}; median {statistics.median(values):,.0f}, worst {min(values):,.0f}"
+
+
+def sitting_table(results: list[dict], envs: list[str]) -> str:
+    """Which sitting made each task's runs, and the machine's pace in it: the plain one-core
+    acting loop's env steps/s measured before each run (shown, never used to rescale)."""
+    lines = ["| task | sitting | runs | acting loop before each run, env steps/s "
+             "(median, range) |", "|---|---|---|---|"]
+    for env_id in envs:
+        runs = [r for r in results if r["env_id"] == env_id]
+        for sitting in sorted({r.get("sitting") or "not recorded" for r in runs}):
+            mine = [r for r in runs if (r.get("sitting") or "not recorded") == sitting]
+            count = ", ".join(f"{SYSTEMS[s]} {sum(r['system'] == s for r in mine)}"
+                              for s in SYSTEMS if any(r["system"] == s for r in mine))
+            pace = [r["calibration"]["env_steps_per_s"] for r in mine if r.get("calibration")]
+            shown = (f"{statistics.median(pace):,.0f} ({min(pace):,.0f}–{max(pace):,.0f})"
+                     if pace else "not measured")
+            lines.append(f"| {env_id} | {sitting} | {count} | {shown} |")
+    return "\n".join(lines)
+
+
 def budget_table(results: list[dict], envs: list[str]) -> str:
     """Each system's return at the end of the budget, against SAC's 1M return: TPDEB's goal is
     judged on its median over seeds, like for like (training against CleanRL's training return,
@@ -108,7 +134,8 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
             mark = final_mark(runs)
             train, ev = at(runs, mark, "train"), at(runs, mark, "eval")
             ours = {"training": train, "evaluation": ev} if system == "tpdeb" else ours
-            row += [cell(train), cell(ev)]
+            show = whole if system == "tpdeb" else cell
+            row += [show(train), show(ev)]
         bar, source = SAC_1M[env_id]
         kind = SAC_KIND[source]
         mine = ours[kind] if ours else []
@@ -198,7 +225,9 @@ def report(directory: Path, envs: list[str]) -> None:
         "descriptively, with no verdict.",
         budget_table(results, present), "TPDEB along the way:", marks_table(results, present),
         "Time to reach the other's return (mean smoothed curve over seeds):",
-        reach_table(results, present)])
+        reach_table(results, present),
+        "Where and when each task's runs were made (a race's runs share one sitting):",
+        sitting_table(results, present)])
     for env_id in present:
         image = ROOT / "docs" / "img" / tag / f"{env_id}.png"
         figure(results, env_id, image)

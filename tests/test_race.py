@@ -87,10 +87,30 @@ def test_the_goal_is_judged_on_the_median_and_the_peers_are_not_judged():
     peer = [run("sb3-sac", "Hopper-v5", 11, [(1, 0, 1.0)], 9_000.0, 9_000.0)]
     table = race_report.budget_table(lucky + peer, ["Hopper-v5"])
     assert "| 2,310 (CleanRL) | 0.43 (training) | 1 of 3 | not met |" in table
+    # TPDEB's seeds whole: the median and the worst beside mean ± std; a peer's one run alone
+    assert "4,000 ± 5,196 (n=3); median 1,000, worst 1,000" in table
+    assert "9,000 (n=1) |" in table and "9,000 (n=1); median" not in table
     assert race_report.goal([2400.0, 2500.0, 1000.0], 2310) == "met"
     assert race_report.goal([10_000.0, 1000.0, 1000.0], 2310) == "not met"
     assert race_report.goal([9_000.0], 2310) == "not judged (one seed)"
     assert race_report.goal([], 2310) == "—"
+
+
+def test_a_sitting_interleaves_the_systems_and_the_report_shows_each_sitting_and_its_pace():
+    assert race.interleaved("Hopper-v5", [11, 12, 13], [11]) == [
+        ("tpdeb", "Hopper-v5", 11), ("sb3-sac", "Hopper-v5", 11), ("sb3-ppo", "Hopper-v5", 11),
+        ("tpdeb", "Hopper-v5", 12), ("tpdeb", "Hopper-v5", 13)]
+    assert race.interleaved("Ant-v5", [11], [11, 12])[-2:] == [("sb3-sac", "Ant-v5", 12),
+                                                                 ("sb3-ppo", "Ant-v5", 12)]
+    runs = [{**run("tpdeb", "Hopper-v5", s, [(1, 0, 1.0)], 1.0, 1.0), "sitting": "S1",
+             "calibration": {"env_steps_per_s": pace}}
+            for s, pace in ((11, 9_000), (12, 11_000), (13, 10_000))]
+    runs.append({**run("sb3-sac", "Hopper-v5", 11, [(1, 0, 1.0)], 1.0, 1.0), "sitting": "S1",
+                 "calibration": {"env_steps_per_s": 12_000}})
+    runs.append(run("tpdeb", "Hopper-v5", 14, [(1, 0, 1.0)], 1.0, 1.0))  # from before sittings
+    table = race_report.sitting_table(runs, ["Hopper-v5"])
+    assert "| Hopper-v5 | S1 | TPDEB 3, SB3 SAC (zoo) 1 | 10,500 (9,000–12,000) |" in table
+    assert "| Hopper-v5 | not recorded | TPDEB 1 | not measured |" in table
 
 
 def test_the_tuning_table_lists_every_run_at_its_marks_preset_first(tmp_path):
