@@ -14,7 +14,7 @@ after the other in one sitting (one session's machine: 5 TPDEB seeds and the two
 minutes), interleaved — TPDEB seed, SAC, PPO, TPDEB seed, … — so that a change of the machine's
 speed meets every system. Before each run the plain one-core acting loop (the task's vector env
 and a fresh policy in numpy, nothing else; `calibrate`) is timed for 10 s, and the run records
-that figure, its sitting (`--sitting-name`, default the UTC date and hour the bench started) and
+that figure, its sitting (`--sitting-name`, default the UTC date and the machine's boot id) and
 the machine, so runs of different sittings can be told apart and compared by their calibration.
 
 Each TPDEB run is a `tpdeb-cluster` with `--train-for-seconds` (the learner's clock, which
@@ -198,6 +198,16 @@ def interleaved(env_id: str, seeds: list[int], peer_seeds: list[int],
     return jobs
 
 
+def sitting_name() -> str:
+    """The UTC date and the kernel's boot id: every run on one session's machine (one boot)
+    shares it, however many bench invocations and hours it spans."""
+    try:
+        boot = Path("/proc/sys/kernel/random/boot_id").read_text().strip()[:8]
+    except OSError:
+        boot = "unknown-boot"
+    return f"{time.strftime('%Y-%m-%d', time.gmtime())}/{boot}"
+
+
 def calibrate(env_id: str, seconds: float = CALIBRATION_S) -> dict:
     """The plain one-core acting loop's env steps/s on this task (its preset's envs per actor,
     a fresh policy in numpy): what the machine gives right now, beside each run's figures."""
@@ -249,8 +259,9 @@ def main() -> None:
                         help="each task's TPDEB seeds and peers interleaved, in one sitting")
     parser.add_argument("--peer-seeds", type=int, nargs="+",
                         help=f"the peers' seeds in a sitting (default {list(PEER_SEEDS)})")
-    parser.add_argument("--sitting-name", default=time.strftime("%Y-%m-%dT%H", time.gmtime()),
-                        help="what the runs record as their sitting (default: UTC date, hour)")
+    parser.add_argument("--sitting-name", default=sitting_name(),
+                        help="what the runs record as their sitting (default: the UTC date and "
+                        "this machine's boot id: one session's machine)")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="a training setting on top of the race preset (TPDEB runs)")
     parser.add_argument("--eval-episodes", type=int, default=10)

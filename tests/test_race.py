@@ -111,6 +111,9 @@ def test_a_sitting_interleaves_the_systems_and_the_report_shows_each_sitting_and
     table = race_report.sitting_table(runs, ["Hopper-v5"])
     assert "| Hopper-v5 | S1 | TPDEB 3, SB3 SAC (zoo) 1 | 10,500 (9,000–12,000) |" in table
     assert "| Hopper-v5 | not recorded | TPDEB 1 | not measured |" in table
+    # one session's machine is one boot: every invocation on it names the same sitting
+    date, boot = race.sitting_name().split("/")
+    assert len(date) == 10 and boot and race.sitting_name() == f"{date}/{boot}"
 
 
 def test_the_tuning_table_lists_every_run_at_its_marks_preset_first(tmp_path):
