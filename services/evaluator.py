@@ -118,6 +118,33 @@ def write_best_policy(run_dir: str | Path, policy: Policy) -> None:
     write_atomic(Path(run_dir) / BEST_POLICY, lambda f: f.write(data))
 
 
+class Evaluator:
+    """One run's evaluations, inline or in the evaluator process: the episodes on an env of
+    its own (made at the first), each offered as the best, a new best's policy written."""
+
+    def __init__(self, config, run_dir: str | Path, say):
+        self.config, self.run_dir, self.say = config, Path(run_dir), say
+        self.best = Best(run_dir)
+        self.env = None
+
+    def __call__(self, policy: Policy, version: int, step: int) -> tuple[Evaluation, bool]:
+        if self.env is None:
+            self.env = make_env(policy, video=False)
+        evaluation = run_episodes(policy, self.env, self.config.eval_episodes,
+                                  self.config.eval_seed)
+        best = self.best.offer(evaluation, version, step)
+        if best:
+            write_best_policy(self.run_dir, policy)
+        self.say(f"evaluation at {step:,} env steps (version {version:,}): {evaluation.mean:.1f} "
+                 f"± {evaluation.std:.1f} over {len(evaluation.returns)} episodes"
+                 f"{' (best so far)' if best else ''}")
+        return evaluation, best
+
+    def close(self) -> None:
+        if self.env is not None:
+            self.env.close()
+
+
 class EvaluatorService:
     """The cluster's evaluator (see the module docstring)."""
 
@@ -125,14 +152,11 @@ class EvaluatorService:
         self.config, self.spec, self.session, self.stop = config, spec, session, stop
         self.keys = k = Keys(config.run_id)
         self.schedule = Schedule(*config.eval_every())
-        self.run_dir = config.default_run_dir()
-        self.best = Best(self.run_dir)
+        self.evaluate = Evaluator(config, config.default_run_dir(), log.info)
         self.global_step = 0
         self.evaluations = 0
         self.last: dict[str, float] = {}
         self.log_bad = rate_limited(log)
-        self.policy: Policy | None = None
-        self.env = None
         self.stats_publisher = declare_publisher(session, "stats", k.stats("evaluator", 0))
         self.subscribers = [session.declare_subscriber(k.stats_all, self._on_stats),
                             session.declare_subscriber(k.control, self._on_control)]
@@ -167,22 +191,13 @@ class EvaluatorService:
         params = self.newest_params()
         if params is None:
             return  # no learner answering yet: the next check asks again
-        policy = policy_of(params.arrays, self.spec)
-        if self.env is None:
-            self.env = make_env(policy, video=False)
         step = self.global_step
-        evaluation = run_episodes(policy, self.env, self.config.eval_episodes,
-                                  self.config.eval_seed)
-        best = self.best.offer(evaluation, params.version, step)
-        if best:
-            write_best_policy(self.run_dir, policy)
+        evaluation, best = self.evaluate(policy_of(params.arrays, self.spec), params.version,
+                                         step)
         self.evaluations += 1
         self.last = {**figures(evaluation), "eval/param_version": params.version,
                      "eval/global_step": step, "eval/count": self.evaluations,
                      "eval/best": float(best)}
-        log.info(f"evaluation {self.evaluations} at {step:,} env steps (version "
-                 f"{params.version:,}): {evaluation.mean:.1f} ± {evaluation.std:.1f} over "
-                 f"{len(evaluation.returns)} episodes{' (best so far)' if best else ''}")
         self.publish()
 
     def publish(self) -> None:
@@ -203,8 +218,7 @@ class EvaluatorService:
             self.stop.wait(0.2)
 
     def close(self) -> None:
-        if self.env is not None:
-            self.env.close()
+        self.evaluate.close()
         self.token.undeclare()
 
 

@@ -31,8 +31,7 @@ from tpdeb.services.config.service import (
 from tpdeb.services.config.train import TrainConfig
 from tpdeb.services.device import describe
 from tpdeb.services.envs import make_vector_env, space_dims
-from tpdeb.services.evaluate import make_env, run_episodes
-from tpdeb.services.evaluator import Best, Schedule, figures, policy_of, write_best_policy
+from tpdeb.services.evaluator import Evaluator, Schedule, figures, policy_of
 from tpdeb.services.learner import LearnerService
 from tpdeb.services.net.memory import MemoryBus
 from tpdeb.services.net.wire import run_spec
@@ -80,8 +79,7 @@ class SerialRunner:
         self.requests = 0
         # Evaluation inline, between two updates (services/evaluator.py): its time is the run's.
         self.schedule = Schedule(*config.eval_every())
-        self.best = Best(self.run_dir)
-        self.eval_env = None
+        self.evaluator = Evaluator(config, self.run_dir, log.info)
         self.eval_s = 0.0
 
     def _pump(self) -> None:
@@ -155,22 +153,16 @@ class SerialRunner:
 
     def evaluate(self) -> None:
         """The current policy's evaluation, logged; a new best kept (best_policy.npz, best.pt)."""
-        learner, cfg = self.learner, self.config
+        learner = self.learner
         started = time.perf_counter()
-        policy = policy_of(learner.learner.model.arrays(), learner.spec)
-        if self.eval_env is None:
-            self.eval_env = make_env(policy, video=False)
-        evaluation = run_episodes(policy, self.eval_env, cfg.eval_episodes, cfg.eval_seed)
         step, version = learner.global_step, learner.param_version()
+        evaluation, best = self.evaluator(policy_of(learner.learner.model.arrays(), learner.spec),
+                                          version, step)
         learner.metrics.log(step, figures(evaluation))
-        best = self.best.offer(evaluation, version, step)
         if best:
-            write_best_policy(self.run_dir, policy)
             learner.save_best(evaluation.mean, version)
         self.schedule.done(step, learner.budget.elapsed())
         self.eval_s += time.perf_counter() - started
-        log.info(f"evaluation at {step:,} env steps: {evaluation.mean:.1f} ± {evaluation.std:.1f}"
-                 f" over {len(evaluation.returns)} episodes{' (best so far)' if best else ''}")
 
     def finish(self, start: float, interrupted: bool) -> dict:
         learner = self.learner
@@ -187,8 +179,7 @@ class SerialRunner:
         learner.finish(not interrupted)
         self.replay.close()
         self.actor.close()
-        if self.eval_env is not None:
-            self.eval_env.close()
+        self.evaluator.close()
         return summary
 
 
