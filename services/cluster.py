@@ -71,6 +71,7 @@ class Cluster:
         self.finishing = threading.Event()  # the learner broadcast its stop
         self.session = None
         self.interrupted = False
+        self.resume = False  # whether this start continues the run dir (prepare() says)
 
     def prepare(self) -> None:
         """The run's checks before anything exists: the env, the learner's device, the run
