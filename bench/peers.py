@@ -1,8 +1,10 @@
 """One peer run of the race (bench/race.py): Stable-Baselines3's SAC or PPO with
-rl-baselines3-zoo's hyperparameters for the task, trained for a wall-clock budget on this
-machine, its training curve against time and the deterministic return of its policy at each mark.
+rl-baselines3-zoo's hyperparameters for the task (`sb3-sac`, `sb3-ppo`), or SAC as CleanRL's
+single-file script runs it (`cleanrl-sac`, bench/cleanrl_sac.py), trained for a wall-clock
+budget on this machine: its training curve against time and the deterministic return of its
+policy at each mark.
 
-    python bench/peers.py --algo sac --env-id Hopper-v5 --seed 11 --seconds 900 \\
+    python bench/peers.py --system sb3-sac --env-id Hopper-v5 --seed 11 --seconds 900 \\
         --marks 300 600 900 --out docs/data/race/sb3-sac/Hopper-v5__11.json
 
 Needs the bench-only extra: `pip install -e '.[peers]'` (stable-baselines3, sb3-contrib, rl_zoo3).
@@ -38,6 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from runs import save_json  # noqa: E402
 
 ALGOS = ("sac", "ppo")
+SYSTEMS = ("sb3-sac", "sb3-ppo", "cleanrl-sac")
 # What the zoo's entries may name as an env wrapper (anything else is refused, not imported).
 WRAPPERS = {"sb3_contrib.common.wrappers.TimeFeatureWrapper"}
 # Zoo keys that configure the run, not the algorithm's constructor.
@@ -188,7 +191,7 @@ def evaluate(model, snapshot: dict, env_id: str, wrapper, vecnorm, seed: int,
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--algo", choices=ALGOS, required=True)
+    parser.add_argument("--system", choices=SYSTEMS, required=True)
     parser.add_argument("--env-id", required=True)
     parser.add_argument("--seed", type=int, required=True)
     parser.add_argument("--seconds", type=float, default=900.0)
@@ -198,43 +201,80 @@ def main() -> None:
                         help="torch threads (the machine's cores)")
     parser.add_argument("--out", type=Path, required=True)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="change one of the zoo's settings (a diagnostic, not the race)")
+                        help="change one of the zoo's settings (a diagnostic, not the race; "
+                             "sb3 systems)")
     args = parser.parse_args()
     import torch
-    import yaml
 
     torch.set_num_threads(args.threads)
-    key, hp = zoo_hyperparams(args.algo, args.env_id)
+
+    def say(text: str) -> None:
+        print(f"[peers] {args.system} {args.env_id} seed {args.seed}: {text}", flush=True)
+
+    marks = [m for m in args.marks if m <= args.seconds]
+    run = run_cleanrl if args.system == "cleanrl-sac" else run_sb3
+    result = {"system": args.system, "env_id": args.env_id, "seed": args.seed,
+              "budget_s": args.seconds, "threads": args.threads,
+              **run(args, marks, say)}
+    save_json(args.out, result)
+
+
+def run_sb3(args, marks: list[float], say) -> dict:
+    import yaml
+
+    algo = args.system.split("-", 1)[1]
+    key, hp = zoo_hyperparams(algo, args.env_id)
     for item in args.set:
         name, _, value = item.partition("=")
         hp[name.strip()] = yaml.safe_load(value)
-
-    def say(text: str) -> None:
-        print(f"[peers] sb3-{args.algo} {args.env_id} seed {args.seed}: {text}", flush=True)
-
     say(f"zoo entry {key}: {hp}")
-    model, vecnorm, wrapper = make_model(args.algo, args.env_id, args.seed, hp)
-    callback = budget_callback(args.seconds, [m for m in args.marks if m <= args.seconds],
-                               vecnorm, say)
+    model, vecnorm, wrapper = make_model(algo, args.env_id, args.seed, hp)
+    callback = budget_callback(args.seconds, marks, vecnorm, say)
     started = time.monotonic()
     model.learn(total_timesteps=int(float(hp.get("n_timesteps", 1e6))), callback=callback)
     train_s = time.monotonic() - started
     say(f"trained {train_s:.0f} s, {model.num_timesteps:,} steps; evaluating "
         f"{len(callback.snapshots)} snapshots")
-    marks = {}
+    evaluated = {}
     for snap in callback.snapshots:
-        marks[str(int(snap["mark"]))] = {
+        evaluated[str(int(snap["mark"]))] = {
             "t_s": snap["t_s"], "steps": snap["steps"],
             "eval": evaluate(model, snap, args.env_id, wrapper, vecnorm, 10_000 + args.seed,
                              args.eval_episodes)}
-        say(f"at {snap['mark']:.0f} s: {snap['steps']:,} steps, evaluation "
-            f"{marks[str(int(snap['mark']))]['eval']['mean_return']:,.1f}")
-    result = {"system": f"sb3-{args.algo}", "env_id": args.env_id, "seed": args.seed,
-              "budget_s": args.seconds, "zoo_entry": key, "changed": args.set,
-              "hyperparams": {k: str(v) for k, v in hp.items()}, "threads": args.threads,
-              "train_s": round(train_s, 1), "steps": int(model.num_timesteps),
-              "episodes": callback.episodes, "marks": marks}
-    save_json(args.out, result)
+        say_mark(say, snap, evaluated)
+    return {"zoo_entry": key, "changed": args.set,
+            "hyperparams": {k: str(v) for k, v in hp.items()},
+            "train_s": round(train_s, 1), "steps": int(model.num_timesteps),
+            "episodes": callback.episodes, "marks": evaluated}
+
+
+def run_cleanrl(args, marks: list[float], say) -> dict:
+    import dataclasses
+
+    import cleanrl_sac
+
+    if args.set:
+        raise SystemExit("peers: --set changes the zoo's settings; cleanrl-sac has none")
+    settings = cleanrl_sac.Settings()
+    say(f"settings: {dataclasses.asdict(settings)}")
+    out = cleanrl_sac.train(args.env_id, args.seed, args.seconds, marks, say, settings)
+    say(f"trained {out['train_s']:.0f} s, {out['steps']:,} steps; evaluating "
+        f"{len(out['snapshots'])} snapshots")
+    evaluated = {}
+    for snap in out["snapshots"]:
+        evaluated[str(int(snap["mark"]))] = {
+            "t_s": snap["t_s"], "steps": snap["steps"],
+            "eval": cleanrl_sac.evaluate(out["actor"], snap, args.env_id, 10_000 + args.seed,
+                                         args.eval_episodes)}
+        say_mark(say, snap, evaluated)
+    return {"hyperparams": {k: str(v) for k, v in dataclasses.asdict(settings).items()},
+            "train_s": round(out["train_s"], 1), "steps": out["steps"],
+            "episodes": out["episodes"], "marks": evaluated}
+
+
+def say_mark(say, snap: dict, evaluated: dict) -> None:
+    say(f"at {snap['mark']:.0f} s: {snap['steps']:,} steps, evaluation "
+        f"{evaluated[str(int(snap['mark']))]['eval']['mean_return']:,.1f}")
 
 
 if __name__ == "__main__":

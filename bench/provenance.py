@@ -404,8 +404,8 @@ def listing(paths: list[Path]) -> tuple[list[str], Counter, list[str]]:
 
 # Which data each page's figures come from (prefixes under docs/data/).
 PAGES = {
-    "docs/RESULTS.md": ("paper/", "race/", "race-tune/", "race-superseded/", "tune/", "check/",
-                        "superseded/", "thinlink/"),
+    "docs/RESULTS.md": ("paper/", "race/", "race-tune/", "race-superseded/", "race-pace/", "tune/",
+                        "check/", "superseded/", "thinlink/"),
     "docs/ABLATIONS.md": ("ablation/", "paper/Ant-v5__tpdeb", "paper/Hopper-v5__tpdeb",
                           "tune/hc-long-klt0.2/", "chaos-30-fixed-kl"),
     "docs/RELIABILITY.md": ("chaos-", "soak", "crowd/", "faults/", "partition/",

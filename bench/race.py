@@ -18,12 +18,13 @@ that figure, its sitting (`--sitting-name`, default the UTC date and the machine
 the machine, so runs of different sittings can be told apart and compared by their calibration.
 
 Each TPDEB run is a `tpdeb-cluster` with `--train-for-seconds` (the learner's clock, which
-starts with its loop: actors starting and the replay filling count) and the task's race preset
-(`deploy/presets/race/{env}.toml`, where there is one; else its per-step preset), a periodic
-checkpoint every minute, all kept. Its training curve is put on the clock through the
-learner's progress rows (`perf/train_elapsed_s`, every 10 s); the checkpoint last written before
-each mark (5, 10 minutes; the final one for 15) is evaluated for 10 deterministic episodes. Each
-peer run is `bench/peers.py`. Nothing else may run on the machine meanwhile: these are timings.
+starts with its loop: actors starting and the replay filling count) on `preset = auto`, as a
+user starts it, so with a clock budget the task's race preset (`deploy/presets/race/{env}.toml`
+where there is one, else its per-step preset), and a periodic checkpoint every minute, all kept.
+Its training curve is put on the clock through the learner's progress rows
+(`perf/train_elapsed_s`, every 10 s); the checkpoint last written before each mark (5, 10
+minutes; the final one for 15) is evaluated for 10 deterministic episodes. Each peer run is
+`bench/peers.py`. Nothing else may run on the machine meanwhile: these are timings.
 
 Resumable run by run: each finished run leaves docs/data/{tag}/{system}/{env}__{seed}.json
 (episodes as (seconds, steps, return), and per mark the steps, the training return — the mean of
@@ -49,7 +50,6 @@ from runs import ROOT, read_run_metrics, run_cluster, save_json  # noqa: E402
 
 DATA = ROOT / "docs" / "data"
 OUT = ROOT / "bench" / "out"
-PRESETS = ROOT / "deploy" / "presets" / "race"
 REPORT_SEEDS = (11, 12, 13, 14, 15)
 PEER_SEEDS = (11,)
 PEERS = ("sb3-sac", "sb3-ppo")
@@ -144,26 +144,38 @@ def run_budgeted(env_id: str, seed: int, budget_s: float, extra: list[str], run_
 
 
 def run_tpdeb(args, env_id: str, seed: int) -> dict | None:
+    """One TPDEB run as a user starts it: `preset = auto` with a clock budget picks the task's
+    race preset where there is one; the run records the file its train.toml names."""
     name = f"{env_id}__{seed}"
-    preset = PRESETS / f"{env_id}.toml"
-    extra = ["--set", f"preset={preset}"] if preset.is_file() else []
-    for item in args.set:
-        extra += ["--set", item]
+    extra = [arg for item in args.set for arg in ("--set", item)]
     print(f"[race] {time.strftime('%H:%M')} {args.tag}: tpdeb | {env_id} | seed {seed} | "
           f"{args.minutes:g} min …", flush=True)
-    result = run_budgeted(env_id, seed, 60.0 * args.minutes, extra,
-                          OUT / args.tag / "tpdeb" / name,
+    run_dir = OUT / args.tag / "tpdeb" / name
+    result = run_budgeted(env_id, seed, 60.0 * args.minutes, extra, run_dir,
                           OUT / args.tag / "tpdeb" / f"{name}.log", args.eval_episodes, "race")
     if result is not None:
         result.update(system="tpdeb", overrides=list(args.set),
-                      preset=str(preset.relative_to(ROOT)) if preset.is_file() else "task preset")
+                      preset=preset_used(run_dir))
     return result
+
+
+def preset_used(run_dir: Path) -> str:
+    """The preset a run's train.toml names, relative to the repository where it is in it."""
+    from tpdeb.services.config import load_toml
+
+    preset = load_toml(run_dir / "train.toml")["run"].get("preset", "none")
+    if preset == "none":
+        return "none"
+    try:
+        return str(Path(preset).relative_to(ROOT))
+    except ValueError:
+        return preset
 
 
 def run_peer(args, system: str, env_id: str, seed: int) -> dict | None:
     budget = 60.0 * args.minutes
     path = result_path(args.tag, system, env_id, seed)
-    cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--algo", system.split("-")[1],
+    cmd = [sys.executable, str(ROOT / "bench" / "peers.py"), "--system", system,
            "--env-id", env_id, "--seed", str(seed), "--seconds", str(budget),
            "--marks", *map(str, marks_for(budget)), "--eval-episodes",
            str(args.eval_episodes), "--out", str(path.with_suffix(".peer"))]

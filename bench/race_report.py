@@ -17,7 +17,8 @@ from runs import ROOT
 
 from tpdeb.services.plot import band, save, smooth
 
-SYSTEMS = {"tpdeb": "TPDEB", "sb3-sac": "SB3 SAC (zoo)", "sb3-ppo": "SB3 PPO (zoo)"}
+SYSTEMS = {"tpdeb": "TPDEB", "sb3-sac": "SB3 SAC (zoo)", "sb3-ppo": "SB3 PPO (zoo)",
+           "cleanrl-sac": "CleanRL SAC"}
 WINDOW = 20  # episodes in the smoothed curves
 GRID_S = 10.0
 BEGIN, END = "<!-- race:begin -->", "<!-- race:end -->"
@@ -119,14 +120,16 @@ def budget_table(results: list[dict], envs: list[str]) -> str:
     judged on its median over seeds, like for like (training against CleanRL's training return,
     evaluation against the zoo's evaluated model); the peers' single seeds are shown, not
     judged."""
-    lines = ["| task | " + " | ".join(f"{name} training | {name} evaluation"
-                                        for name in SYSTEMS.values())
+    shown = [s for s in SYSTEMS if s in ("tpdeb", "sb3-sac", "sb3-ppo")
+             or any(r["system"] == s for r in results)]
+    lines = ["| task | " + " | ".join(f"{SYSTEMS[s]} training | {SYSTEMS[s]} evaluation"
+                                        for s in shown)
              + " | SAC at 1M (source) | TPDEB median / SAC 1M | TPDEB seeds at or above "
              "| goal (median) |",
-             "|---|" + "---|---|" * len(SYSTEMS) + "---|---|---|---|"]
+             "|---|" + "---|---|" * len(shown) + "---|---|---|---|"]
     for env_id in envs:
         row, ours = [env_id], {}
-        for system in SYSTEMS:
+        for system in shown:
             runs = [r for r in results if r["env_id"] == env_id and r["system"] == system]
             if not runs:
                 row += ["—", "—"]

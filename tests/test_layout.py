@@ -109,7 +109,8 @@ def test_the_wheel_installs_one_top_level_name(tmp_path):
     assert tops == {"tpdeb", wheel.name.split("-py")[0] + ".dist-info"}, tops
     for needed in ("tpdeb/services/learner.py", "tpdeb/protocol/codec.py",
                    "tpdeb/tpdeb_core/learner.py", "tpdeb/deploy/local.toml",
-                   "tpdeb/deploy/presets/HalfCheetah-v5.toml"):
+                   "tpdeb/deploy/presets/HalfCheetah-v5.toml",
+                   "tpdeb/deploy/presets/race/Walker2d-v5.toml"):
         assert needed in names, needed
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from tpdeb.services.config import ConfigError, resolve
-from tpdeb.services.config.presets import ALGORITHMS, PRESETS_DIR, load_preset
+from tpdeb.services.config.presets import ALGORITHMS, PRESETS_DIR, load_preset, shown
 from tpdeb.services.config.service import ActorServiceConfig, LearnerServiceConfig
 from tpdeb.services.config.train import RunSettings, TrainConfig
 
@@ -161,3 +161,23 @@ def test_the_cluster_applies_the_preset_below_its_file_and_flags(tmp_path):
     assert impact.zeta == 0.0 and impact.hidden_sizes == parse(["--env-id", "Ant-v5"]).hidden_sizes
     with pytest.raises(ConfigError, match="algo=impact fixes"):
         plan("--set", "algo=impact", "--set", "kl_coef=0.1")
+
+
+def test_a_wall_clock_budget_picks_the_race_preset_where_the_task_has_one():
+    race = sorted((PRESETS_DIR / "race").glob("*.toml"))
+    assert race, "no race presets"
+    raced = race[0].stem
+    clocked = parse(["--env-id", raced, "--train-for-seconds", "900"])
+    assert clocked.preset == str(race[0].resolve())
+    assert parse(["--env-id", raced]).preset == str((PRESETS_DIR / f"{raced}.toml").resolve())
+    # a task without a race preset keeps its preset; an explicit choice outranks the rule
+    plain = next(t for t in TASKS if not (PRESETS_DIR / "race" / f"{t}.toml").is_file())
+    assert (parse(["--env-id", plain, "--train-for-seconds", "900"]).preset
+            == str((PRESETS_DIR / f"{plain}.toml").resolve()))
+    assert parse(["--env-id", raced, "--train-for-seconds", "900", "--preset", "none"]).preset \
+        == "none"
+    # every service of the run resolves the same file from the same settings
+    for cls in (ActorServiceConfig, LearnerServiceConfig):
+        assert parse(["--env-id", raced, "--train-for-seconds", "900"], cls).preset \
+            == clocked.preset
+    assert "race preset" in shown(clocked.preset)

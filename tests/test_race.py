@@ -14,6 +14,7 @@ from tests.test_checkpoint import config_for, trained_learner
 from tpdeb.services.store import checkpoint as ckpt
 
 sys.path.insert(0, str(ROOT / "bench"))
+import cleanrl_sac  # noqa: E402
 import peers  # noqa: E402
 import race  # noqa: E402
 import race_report  # noqa: E402
@@ -143,3 +144,41 @@ def test_zoo_settings_are_read_as_literals_and_nothing_else():
             peers.literal(bad)
     assert peers.schedule("lin_0.4")(0.5) == pytest.approx(0.2)
     assert peers.schedule(3e-4) == 3e-4
+
+
+def test_cleanrl_sac_squashes_a_gaussian_and_its_log_density_follows():
+    import numpy as np
+    import torch
+
+    low, high = np.array([-2.0, -1.0]), np.array([2.0, 3.0])
+    actor = cleanrl_sac.networks(3, 2, low, high, 16)[0]
+    torch.manual_seed(0)
+    obs = torch.randn(64, 3)
+    action, logp, mean_action = actor.sample(obs)
+    assert bool(((action > torch.tensor(low)) & (action < torch.tensor(high))).all())
+    # the density of the action: N(pre) over |d action / d pre| = scale (1 - tanh²)
+    mean, log_std = actor(obs)
+    assert bool(((log_std >= -5) & (log_std <= 2)).all())
+    scale = torch.tensor((high - low) / 2, dtype=torch.float32)
+    bias = torch.tensor((high + low) / 2, dtype=torch.float32)
+    squashed = ((action - bias) / scale).clamp(-1 + 1e-6, 1 - 1e-6)
+    pre = torch.atanh(squashed)
+    expected = (torch.distributions.Normal(mean, log_std.exp()).log_prob(pre)
+                - torch.log(scale * (1 - squashed.pow(2)) + 1e-6)).sum(-1)
+    assert torch.allclose(logp, expected, atol=1e-3)
+    assert torch.allclose(mean_action, torch.tanh(mean) * scale + bias)
+
+
+def test_cleanrl_sac_trains_on_the_clock_keeps_its_marks_and_evaluates_them_alike():
+    settings = cleanrl_sac.Settings(buffer_size=5_000, batch_size=32, learning_starts=100,
+                                    hidden=16)
+    said = []
+    out = cleanrl_sac.train("InvertedPendulum-v5", 3, 3.0, [1.0, 3.0], said.append, settings)
+    assert out["steps"] > settings.learning_starts and 2.9 < out["train_s"] < 6
+    assert [s["mark"] for s in out["snapshots"]] == [1.0, 3.0]
+    assert out["snapshots"][0]["steps"] < out["snapshots"][1]["steps"] <= out["steps"]
+    assert out["episodes"] and all(0 <= t <= out["train_s"] and r > 0
+                                   for t, _, r in out["episodes"])
+    first = cleanrl_sac.evaluate(out["actor"], out["snapshots"][1], "InvertedPendulum-v5", 7, 2)
+    again = cleanrl_sac.evaluate(out["actor"], out["snapshots"][1], "InvertedPendulum-v5", 7, 2)
+    assert first == again and first["episodes"] == 2

@@ -2,7 +2,9 @@
 what the user sets.
 
 Precedence, lowest first: dataclass defaults < the task's preset (`deploy/presets/{env_id}.toml`,
-picked by env id; `--preset none` skips it, `--preset FILE` names another) < the algorithm's
+picked by env id; for a run with a wall-clock budget, `train_for_seconds`, its race preset
+`deploy/presets/race/{env_id}.toml` where there is one; `--preset none` skips it, `--preset FILE`
+names another) < the algorithm's
 defining settings (`--algo impact|ppo-per`) < `--config FILE` < `TPDEB_*` < flags. A user
 setting that contradicts what the chosen algorithm is made of (IMPACT with a KL term) is refused,
 not silently overridden: the run would not be the algorithm its name says.
@@ -16,6 +18,7 @@ from pathlib import Path
 from tpdeb.services.config import ConfigError, load_toml, read_sections, section_of
 
 PRESETS_DIR = Path(__file__).resolve().parents[2] / "deploy" / "presets"
+RACE_DIR = PRESETS_DIR / "race"
 
 
 def _ppo_per(values: dict) -> dict:
@@ -42,13 +45,16 @@ ALGORITHMS = {
 }
 
 
-def preset_path(env_id: str, choice: str) -> Path | None:
-    """The preset file for `env_id` under `choice` ("auto", "none" or a path)."""
+def preset_path(env_id: str, choice: str, by_clock: bool = False) -> Path | None:
+    """The preset file for `env_id` under `choice` ("auto", "none" or a path); `by_clock`: the
+    run's budget is wall-clock seconds, so auto picks the task's race preset where there is one
+    (tuned for what a run makes of its minutes, not for a number of env steps)."""
     if choice == "none":
         return None
     if choice in ("", "auto"):
-        path = PRESETS_DIR / f"{env_id}.toml"
-        return path if path.is_file() else None
+        candidates = [RACE_DIR / f"{env_id}.toml"] if by_clock else []
+        candidates.append(PRESETS_DIR / f"{env_id}.toml")
+        return next((path for path in candidates if path.is_file()), None)
     path = Path(choice)
     if not path.is_file():
         raise ConfigError(f"preset={choice!r}: no such file (use auto, none or a TOML file)")
@@ -71,7 +77,8 @@ def layer(cls, user: dict) -> dict:
     defaults = {f.name: f.default for f in dataclasses.fields(cls)
                 if f.default is not dataclasses.MISSING}
     env_id = user.get("env_id", defaults["env_id"])
-    path = preset_path(env_id, user.get("preset", defaults["preset"]))
+    by_clock = user.get("train_for_seconds", defaults.get("train_for_seconds", 0.0)) > 0
+    path = preset_path(env_id, user.get("preset", defaults["preset"]), by_clock)
     values = load_preset(cls, path) if path is not None else {}
     values.update(user)
     algo = values.get("algo", defaults["algo"])
@@ -93,7 +100,9 @@ def shown(preset: str) -> str:
     """A preset path as announced: relative to the working directory where it is inside it."""
     if preset == "none":
         return "none (defaults)"
+    path = Path(preset)
+    why = " (the task's race preset: a wall-clock budget)" if path.parent == RACE_DIR else ""
     try:
-        return str(Path(preset).relative_to(Path.cwd()))
+        return str(path.relative_to(Path.cwd())) + why
     except ValueError:
-        return preset
+        return preset + why

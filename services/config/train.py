@@ -34,8 +34,9 @@ class RunSettings:
     """tpdeb | impact | ppo-per: the algorithm (the paper's method or one of its baselines);
     impact and ppo-per fix the settings that define them"""
     preset: str = "auto"
-    """auto: the task's preset deploy/presets/{env_id}.toml when there is one | none | a TOML
-    file; settings given by --config, TPDEB_* or flags override the preset's"""
+    """auto: the task's preset deploy/presets/{env_id}.toml when there is one (with
+    train_for_seconds > 0, its race preset deploy/presets/race/{env_id}.toml first) | none | a
+    TOML file; settings given by --config, TPDEB_* or flags override the preset's"""
     env_id: str = "HalfCheetah-v5"
     """gymnasium environment id (continuous actions, flat observations); module:Env-v0
     imports module (from the current directory first) to register Env-v0"""
