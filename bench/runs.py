@@ -22,6 +22,9 @@ ROOT = Path(__file__).resolve().parents[1]
 DIAGNOSTICS = ("losses/clipfrac", "losses/kl_behaviour", "losses/approx_kl",
                "losses/explained_variance", "losses/entropy", "actor/param_version_lag",
                "replay/sample_age_updates", "perf/update_ms")
+# The learner's state over the run, kept thinned in each result (what a plateau is made of).
+OVER_TIME = ("losses/entropy", "losses/kl_behaviour", "losses/approx_kl", "losses/clipfrac",
+             "losses/explained_variance", "losses/value_loss", "losses/kl_coef")
 
 
 def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[str],
@@ -97,7 +100,9 @@ def summarize(rows: list[dict], total_steps: int) -> dict:
     return {"final_return": training_return(curve, total_steps), "steps": last,
             "episodes": len(curve), "diagnostics": diagnostics, "curve": thin(curve, 400),
             "policy_loss": thin(series(rows, "losses/policy_loss"), 200, digits=5),
-            "clock": thin(series(rows, "perf/train_elapsed_s"), 200)}
+            "clock": thin(series(rows, "perf/train_elapsed_s"), 200),
+            "diagnostic_curves": {tag: thin(series(rows, tag), 50, digits=4)
+                                  for tag in OVER_TIME if any(tag in r for r in rows)}}
 
 
 def series(rows: list[dict], tag: str) -> list[tuple[int, float]]:

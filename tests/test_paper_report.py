@@ -116,3 +116,25 @@ def test_the_sac_table_compares_like_for_like():
     # CleanRL reports training returns, the zoo a deterministic model's
     assert "| Hopper-v5 | 2,310 | CleanRL (training) | 2,012 (-13%) | 3 |" in text
     assert "| Ant-v5 | 4,616 | zoo (evaluation) | 5,012 (+9%) | 3 |" in text
+
+
+def test_a_plateau_table_shows_the_learner_state_per_tenth_and_when_the_return_got_out():
+    import plateau
+    import runs
+
+    rows = []
+    for step in range(1_000, 100_001, 1_000):
+        rows.append({"global_step": step, "charts/episodic_return": 400.0 if step <= 60_000
+                     else 2_000.0})
+        rows.append({"global_step": step, "losses/entropy": 5.0 - step / 10_000,
+                     "losses/clipfrac": 0.1})
+    result = runs.summarize(rows, 100_000)
+    assert set(result["diagnostic_curves"]) == {"losses/entropy", "losses/clipfrac"}
+    result.update(env_id="Hopper-v5", seed=1, algo="tpdeb", total_steps=100_000)
+    table = plateau.run_table(result, threshold=1_500)
+    lines = [line for line in table.splitlines() if line.startswith("| ")]
+    assert len(lines) == 1 + 10  # the header and one row per tenth
+    assert lines[1].split(" | ")[1] == "400" and lines[-1].split(" | ")[1] == "2,000"
+    assert lines[1].split(" | ")[2] == "4.45"  # the mean entropy over the first tenth
+    assert "first at or above 1,500 after 64k steps" in table  # 5 episodes, 4 past 60k
+    assert plateau.first_passing(result["curve"], 10_000) is None
