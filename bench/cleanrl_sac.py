@@ -5,10 +5,13 @@ policy and temperature 3e-4 / 1e-3, the policy updated every second step twice (
 its compensation), Polyak τ = 0.005 every step, the temperature tuned toward −|A|, 5,000 random
 steps first, batch 256, γ = 0.99. The same task settings for every task, as CleanRL's script has.
 
-Written here from that description (not imported: CleanRL is a set of scripts, not a package);
-the loop keeps to what the script does per step, so its speed is that script's speed on this
-machine, and the returns are comparable with its published curves. Truncated episodes bootstrap
-from their final observation (the script's `real_next_obs`), terminated ones do not.
+Written here from that description (not imported: CleanRL is a set of scripts, not a package).
+Per env step it does the script's work — one action, one Q update on a batch of 256, every second
+step two policy and two temperature updates, one Polyak step — with a numpy replay and one
+fused Polyak call in place of the script's per-parameter loop, so its pace is that of a lean
+single-process SAC here and its returns compare with CleanRL's published curves. Truncated
+episodes bootstrap from their final observation (the script's `real_next_obs`), terminated
+ones do not.
 """
 
 from __future__ import annotations

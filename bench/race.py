@@ -3,19 +3,20 @@
     python bench/race.py --sitting --envs Hopper-v5   # one task's race in one sitting: TPDEB
                                          # seeds 11-15 and the peers (seed 11) interleaved
     python bench/race.py                 # TPDEB alone: the six tasks × seeds 11-15
-    python bench/race.py --peers         # SB3 SAC and PPO alone, zoo hyperparameters, seed 11,
-                                         # on the six tasks (needs '.[peers]')
+    python bench/race.py --peers         # the peers alone (SB3 SAC and PPO with the zoo's
+                                         # settings, CleanRL's SAC), seed 11, six tasks
     python bench/race.py --report        # RESULTS' race table and docs/img/race/*.png
     python bench/race.py --envs Hopper-v5 --seeds 1 --minutes 5 --tag race-tune/NAME \\
         --set learning_rate=3e-4         # a tuning run of the race preset (seeds 1-3 only)
 
 A race is run as a race with `--sitting`: for each task, its TPDEB seeds and its peers' runs one
-after the other in one sitting (one session's machine: 5 TPDEB seeds and the two peers are ~105
-minutes), interleaved — TPDEB seed, SAC, PPO, TPDEB seed, … — so that a change of the machine's
-speed meets every system. Before each run the plain one-core acting loop (the task's vector env
-and a fresh policy in numpy, nothing else; `calibrate`) is timed for 10 s, and the run records
-that figure, its sitting (`--sitting-name`, default the UTC date and the machine's boot id) and
-the machine, so runs of different sittings can be told apart and compared by their calibration.
+after the other in one sitting (one session's machine: 5 TPDEB seeds and the three peers are ~130
+minutes), interleaved — TPDEB seed, SB3 SAC, SB3 PPO, CleanRL SAC, TPDEB seed, … — so that a change
+of the machine's speed meets every system. Before each run the plain one-core acting loop (the
+task's vector env and a fresh policy in numpy, nothing else; `calibrate`) is timed for 10 s, and
+the run records that figure, its sitting (`--sitting-name`, default the UTC date and the machine's
+boot id) and the machine, so runs of different sittings can be told apart and compared by their
+calibration.
 
 Each TPDEB run is a `tpdeb-cluster` with `--train-for-seconds` (the learner's clock, which
 starts with its loop: actors starting and the replay filling count) on `preset = auto`, as a
@@ -52,7 +53,7 @@ DATA = ROOT / "docs" / "data"
 OUT = ROOT / "bench" / "out"
 REPORT_SEEDS = (11, 12, 13, 14, 15)
 PEER_SEEDS = (11,)
-PEERS = ("sb3-sac", "sb3-ppo")
+PEERS = ("sb3-sac", "sb3-ppo", "cleanrl-sac")
 CALIBRATION_S = 10.0
 NEVER = 10**9  # total_timesteps of a race run: the clock is what ends it
 
@@ -266,7 +267,7 @@ def main() -> None:
     parser.add_argument("--minutes", type=float, default=15.0)
     parser.add_argument("--tag", default="race")
     parser.add_argument("--peers", action="store_true",
-                        help="run the peers (SB3 SAC and PPO) instead of TPDEB")
+                        help="run the peers (SB3 SAC and PPO, CleanRL SAC) instead of TPDEB")
     parser.add_argument("--sitting", action="store_true",
                         help="each task's TPDEB seeds and peers interleaved, in one sitting")
     parser.add_argument("--peer-seeds", type=int, nargs="+",

@@ -100,9 +100,9 @@ def test_the_goal_is_judged_on_the_median_and_the_peers_are_not_judged():
 def test_a_sitting_interleaves_the_systems_and_the_report_shows_each_sitting_and_its_pace():
     assert race.interleaved("Hopper-v5", [11, 12, 13], [11]) == [
         ("tpdeb", "Hopper-v5", 11), ("sb3-sac", "Hopper-v5", 11), ("sb3-ppo", "Hopper-v5", 11),
-        ("tpdeb", "Hopper-v5", 12), ("tpdeb", "Hopper-v5", 13)]
-    assert race.interleaved("Ant-v5", [11], [11, 12])[-2:] == [("sb3-sac", "Ant-v5", 12),
-                                                                 ("sb3-ppo", "Ant-v5", 12)]
+        ("cleanrl-sac", "Hopper-v5", 11), ("tpdeb", "Hopper-v5", 12), ("tpdeb", "Hopper-v5", 13)]
+    assert race.interleaved("Ant-v5", [11], [11, 12])[-3:] == [
+        ("sb3-sac", "Ant-v5", 12), ("sb3-ppo", "Ant-v5", 12), ("cleanrl-sac", "Ant-v5", 12)]
     runs = [{**run("tpdeb", "Hopper-v5", s, [(1, 0, 1.0)], 1.0, 1.0), "sitting": "S1",
              "calibration": {"env_steps_per_s": pace}}
             for s, pace in ((11, 9_000), (12, 11_000), (13, 10_000))]
