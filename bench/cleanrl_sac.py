@@ -203,24 +203,13 @@ def train(env_id: str, seed: int, seconds: float, marks: list[float], say,
 
 def evaluate(actor, snapshot: dict, env_id: str, seed: int, episodes: int) -> dict:
     """The snapshot's deterministic return (the squashed mean action) over fresh episodes."""
-    import gymnasium as gym
     import torch
+    from peers import rollouts
 
     actor.load_state_dict(snapshot["actor"])
-    returns, lengths = [], []
-    for i in range(episodes):
-        env = gym.make(env_id)
-        obs, _ = env.reset(seed=seed + i)
-        total, length, done = 0.0, 0, False
-        while not done:
-            with torch.no_grad():
-                action = actor.sample(torch.as_tensor(obs, dtype=torch.float32)[None])[2][0]
-            obs, reward, terminated, truncated, _ = env.step(action.numpy())
-            total, length = total + float(reward), length + 1
-            done = terminated or truncated
-        env.close()
-        returns.append(total)
-        lengths.append(length)
-    return {"episodes": episodes, "seed": seed, "mean_return": float(np.mean(returns)),
-            "std_return": float(np.std(returns)), "mean_length": float(np.mean(lengths)),
-            "returns": returns}
+
+    def act(obs):
+        with torch.no_grad():
+            return actor.sample(torch.as_tensor(obs, dtype=torch.float32)[None])[2][0].numpy()
+
+    return rollouts(act, env_id, seed, episodes)

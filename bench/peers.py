@@ -162,10 +162,22 @@ def budget_callback(seconds: float, marks: list[float], vecnorm, say):
 def evaluate(model, snapshot: dict, env_id: str, wrapper, vecnorm, seed: int,
              episodes: int) -> dict:
     """The snapshot's deterministic return over `episodes` fresh episodes."""
-    import gymnasium as gym
-
     model.policy.load_state_dict(snapshot["policy"])
     rms = snapshot["obs_rms"]
+
+    def act(obs):
+        if rms is not None and vecnorm.norm_obs:
+            obs = np.clip((obs - rms.mean) / np.sqrt(rms.var + vecnorm.epsilon),
+                          -vecnorm.clip_obs, vecnorm.clip_obs)
+        return model.predict(obs, deterministic=True)[0]
+
+    return rollouts(act, env_id, seed, episodes, wrapper)
+
+
+def rollouts(act, env_id: str, seed: int, episodes: int, wrapper=None) -> dict:
+    """`act(obs) -> action` over `episodes` fresh episodes, episode i from reset(seed + i)."""
+    import gymnasium as gym
+
     returns, lengths = [], []
     for i in range(episodes):
         env = gym.make(env_id)
@@ -173,11 +185,7 @@ def evaluate(model, snapshot: dict, env_id: str, wrapper, vecnorm, seed: int,
         obs, _ = env.reset(seed=seed + i)
         total, length, done = 0.0, 0, False
         while not done:
-            if rms is not None and vecnorm.norm_obs:
-                obs = np.clip((obs - rms.mean) / np.sqrt(rms.var + vecnorm.epsilon),
-                              -vecnorm.clip_obs, vecnorm.clip_obs)
-            action, _ = model.predict(obs, deterministic=True)
-            obs, reward, terminated, truncated, _ = env.step(action)
+            obs, reward, terminated, truncated, _ = env.step(act(obs))
             total, length = total + float(reward), length + 1
             done = terminated or truncated
         env.close()
