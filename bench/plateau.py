@@ -6,10 +6,11 @@ files), step by step, for the runs that sat low and those that did not.
 
 For each run, at every tenth of its steps: the training return (the mean of the episodes ending
 in that tenth), the policy's entropy, its KL to the behaviour policies, the approximate KL to
-the target policy, the clip fraction, the value function's explained variance and the adaptive
-KL coefficient, each the mean of the learner's rows in that tenth (`diagnostic_curves`, kept in
-each result by bench/runs.py). Then the step at which the return first passes `--threshold`:
-a run is on a plateau until then. Prints markdown; nothing is run or written.
+the target policy, the clip fraction, the value function's explained variance and loss, the
+gradients' norm before clipping (`max_grad_norm`) and the adaptive KL coefficient, each the
+mean of the learner's rows in that tenth (`diagnostic_curves`, kept in each result by
+bench/runs.py). Then the step at which the return first passes `--threshold`: a run is on a
+plateau until then. Prints markdown; nothing is run or written.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ from runs import ROOT  # noqa: E402
 
 COLUMNS = (("losses/entropy", "entropy", 2), ("losses/kl_behaviour", "KL(μ‖π)", 3),
            ("losses/approx_kl", "KL to target", 3), ("losses/clipfrac", "clip frac", 2),
-           ("losses/explained_variance", "expl. var", 2), ("losses/kl_coef", "λ_kl", 3))
+           ("losses/explained_variance", "expl. var", 2), ("losses/value_loss", "value loss", 3),
+           ("losses/grad_norm", "grad norm", 2), ("losses/kl_coef", "λ_kl", 3))
 TENTHS = 10
 
 

@@ -24,7 +24,8 @@ DIAGNOSTICS = ("losses/clipfrac", "losses/kl_behaviour", "losses/approx_kl",
                "replay/sample_age_updates", "perf/update_ms")
 # The learner's state over the run, kept thinned in each result (what a plateau is made of).
 OVER_TIME = ("losses/entropy", "losses/kl_behaviour", "losses/approx_kl", "losses/clipfrac",
-             "losses/explained_variance", "losses/value_loss", "losses/kl_coef")
+             "losses/explained_variance", "losses/value_loss", "losses/kl_coef",
+             "losses/grad_norm")
 
 
 def run_cluster(env_id: str, steps: int, seed: int, run_dir: Path, extra: list[str],
