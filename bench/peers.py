@@ -18,9 +18,11 @@ the one a zoo user gets; a callback stops it when the wall-clock budget is spent
 
 The clock starts with `learn()` (building the env and the model is not counted) and the budget
 is checked at every env step (PPO finishes the update it is in). At each mark the policy's
-parameters and the observation normaliser are copied in memory; after training, outside the
-budget, each copy is evaluated for 10 deterministic episodes (episode i from `reset(seed=10000 +
-seed + i)`, as tpdeb-eval is run by the benches). Nothing is written but the result JSON.
+parameters and the observation normaliser are copied in memory; a run whose zoo step budget ends
+first (PPO on Swimmer: 1M steps in under 5 minutes) holds its final policy at every later mark,
+as its user would. After training, outside the budget, each copy is evaluated for 10
+deterministic episodes (episode i from `reset(seed=10000 + seed + i)`, as tpdeb-eval is run by
+the benches). Nothing is written but the result JSON.
 """
 
 from __future__ import annotations
@@ -143,18 +145,28 @@ def budget_callback(seconds: float, marks: list[float], vecnorm, say):
                     self.episodes.append((round(t, 2), int(self.num_timesteps),
                                           float(info["episode"]["r"])))
             while self.pending and t >= self.pending[0]:
-                self.snapshots.append({
-                    "mark": self.pending.pop(0), "t_s": round(t, 2),
-                    "steps": int(self.num_timesteps),
-                    "policy": {k: v.detach().clone()
-                               for k, v in self.model.policy.state_dict().items()},
-                    "obs_rms": copy.deepcopy(vecnorm.obs_rms) if vecnorm is not None else None})
+                self.snapshot(self.pending.pop(0), t)
             if now - self.last_say >= 30:
                 recent = [r for _, _, r in self.episodes[-10:]]
                 say(f"{t:6.0f}/{seconds:.0f} s | {self.num_timesteps:,} steps | return "
                     f"{statistics.mean(recent) if recent else float('nan'):,.1f}")
                 self.last_say = now
             return t < seconds
+
+        def _on_training_end(self) -> None:
+            """The zoo's step budget spent before the wall-clock's: the final policy is the
+            one its user holds at every mark still to come."""
+            t = time.monotonic() - self.start
+            while self.pending:
+                self.snapshot(self.pending.pop(0), t, ended=True)
+
+        def snapshot(self, mark: float, t: float, ended: bool = False) -> None:
+            self.snapshots.append({
+                "mark": mark, "t_s": round(t, 2), "steps": int(self.num_timesteps),
+                "policy": {k: v.detach().clone()
+                           for k, v in self.model.policy.state_dict().items()},
+                "obs_rms": copy.deepcopy(vecnorm.obs_rms) if vecnorm is not None else None,
+                **({"ended_before": True} if ended else {})})
 
     return Budget()
 
@@ -247,6 +259,7 @@ def run_sb3(args, marks: list[float], say) -> dict:
     for snap in callback.snapshots:
         evaluated[str(int(snap["mark"]))] = {
             "t_s": snap["t_s"], "steps": snap["steps"],
+            **({"ended_before": True} if snap.get("ended_before") else {}),
             "eval": evaluate(model, snap, args.env_id, wrapper, vecnorm, 10_000 + args.seed,
                              args.eval_episodes)}
         say_mark(say, snap, evaluated)

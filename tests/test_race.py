@@ -182,3 +182,17 @@ def test_cleanrl_sac_trains_on_the_clock_keeps_its_marks_and_evaluates_them_alik
     first = cleanrl_sac.evaluate(out["actor"], out["snapshots"][1], "InvertedPendulum-v5", 7, 2)
     again = cleanrl_sac.evaluate(out["actor"], out["snapshots"][1], "InvertedPendulum-v5", 7, 2)
     assert first == again and first["episodes"] == 2
+
+
+def test_a_peer_whose_step_budget_ends_first_holds_its_final_policy_at_the_later_marks():
+    sb3 = pytest.importorskip("stable_baselines3")  # the bench-only extra, `.[peers]`
+    model = sb3.PPO("MlpPolicy", "InvertedPendulum-v5", n_steps=64, batch_size=32, n_epochs=1,
+                    seed=1, verbose=0)
+    callback = peers.budget_callback(600.0, [300.0, 600.0], None, lambda _: None)
+    model.learn(total_timesteps=128, callback=callback)  # seconds, where the marks are minutes
+    assert [s["mark"] for s in callback.snapshots] == [300.0, 600.0]
+    assert all(s["ended_before"] and s["steps"] == model.num_timesteps
+               for s in callback.snapshots)
+    final = {k: v for k, v in model.policy.state_dict().items()}
+    for name, value in callback.snapshots[-1]["policy"].items():
+        assert (value == final[name]).all()
