@@ -166,7 +166,7 @@ def budget_callback(seconds: float, marks: list[float], vecnorm, say):
                 "policy": {k: v.detach().clone()
                            for k, v in self.model.policy.state_dict().items()},
                 "obs_rms": copy.deepcopy(vecnorm.obs_rms) if vecnorm is not None else None,
-                **({"ended_before": True} if ended else {})})
+                "ended_before": ended})
 
     return Budget()
 
@@ -259,7 +259,7 @@ def run_sb3(args, marks: list[float], say) -> dict:
     for snap in callback.snapshots:
         evaluated[str(int(snap["mark"]))] = {
             "t_s": snap["t_s"], "steps": snap["steps"],
-            **({"ended_before": True} if snap.get("ended_before") else {}),
+            **({"ended_before": True} if snap["ended_before"] else {}),
             "eval": evaluate(model, snap, args.env_id, wrapper, vecnorm, 10_000 + args.seed,
                              args.eval_episodes)}
         say_mark(say, snap, evaluated)

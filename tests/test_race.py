@@ -189,10 +189,10 @@ def test_a_peer_whose_step_budget_ends_first_holds_its_final_policy_at_the_later
     model = sb3.PPO("MlpPolicy", "InvertedPendulum-v5", n_steps=64, batch_size=32, n_epochs=1,
                     seed=1, verbose=0)
     callback = peers.budget_callback(600.0, [300.0, 600.0], None, lambda _: None)
-    model.learn(total_timesteps=128, callback=callback)  # seconds, where the marks are minutes
+    model.learn(total_timesteps=128, callback=callback)  # done long before the first mark
     assert [s["mark"] for s in callback.snapshots] == [300.0, 600.0]
     assert all(s["ended_before"] and s["steps"] == model.num_timesteps
                for s in callback.snapshots)
-    final = {k: v for k, v in model.policy.state_dict().items()}
+    final = model.policy.state_dict()
     for name, value in callback.snapshots[-1]["policy"].items():
         assert (value == final[name]).all()
