@@ -4,6 +4,7 @@ audit of what the replay holds against every acknowledgement that crossed the wi
     python bench/chaos.py --minutes 30 --out docs/data/chaos-30.json   # half an hour
     python bench/chaos.py --minutes 3                                  # a quick check
     python bench/chaos.py --plan --seed 2                              # the schedule alone
+    python bench/chaos.py --minutes 10 --shards 2 --learners 2         # replay shards, ranks
 
 The run is the default cluster (deploy/local.toml: router, replay, learner, 2 actors × 4 envs)
 on HalfCheetah-v5 with its preset, the actors behind `tpdeb-link` at an unlimited rate (so a
@@ -11,7 +12,9 @@ link exists to cut), trained for the chaos window plus `--calm-s` by the learner
 (`--train-for-seconds`): the run ends on its own and must exit 0. From `--warmup-s` on, every
 10-30 s (after the previous fault ended) one fault, drawn with `--seed`:
 
-- kill: SIGKILL of a service (router, replay, learner, actor-N): the cluster restarts it;
+- kill: SIGKILL of a service (router, replay, learner, actor-N; with `--shards K` and
+  `--learners N` replay-k and learner-r, every shard and rank a target): the cluster restarts
+  it (a learner rank with its whole group);
 - hang: SIGSTOP of a service for 5-20 s, then SIGCONT: alive but silent, past Zenoh's 10 s
   lease for the longer ones (transports close; the service must reconnect);
 - partition: SIGSTOP of the link for 5-20 s: the actors' side and the learner's side stay up,
@@ -52,6 +55,7 @@ from paper_report import compare  # noqa: E402
 from procfs import cmdline, descendants, proc_table, service_name  # noqa: E402
 
 from tpdeb.protocol import Ack, Keys, Stats, Trajectory, decode  # noqa: E402
+from tpdeb.protocol.keys import ANY_SHARD  # noqa: E402
 from tpdeb.services.net.session import open_session  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,13 +101,14 @@ class Wire:
     """What crossed the router: every acknowledgement (first time seen) and every stats
     message, with arrival times (seconds since `t0`)."""
 
-    def __init__(self, endpoint: str, run_id: str, t0: float):
+    def __init__(self, endpoint: str, run_id: str, t0: float, shards: int = 1):
         self.t0, self.lock = t0, threading.Lock()
         self.acks: dict[tuple[int, int, int], float] = {}
         self.stats: list[tuple[float, str, str, dict]] = []
         self.session = open_session("client", [], [endpoint], connect_timeout_s=60)
         keys = Keys(run_id)
-        self.subscribers = [self.session.declare_subscriber(keys.ack_all, self._on_ack),
+        acks = (keys if shards == 1 else keys.of_shard(ANY_SHARD)).ack_all  # every shard's
+        self.subscribers = [self.session.declare_subscriber(acks, self._on_ack),
                             self.session.declare_subscriber(keys.stats_all, self._on_stats)]
 
     def now(self) -> float:
@@ -144,9 +149,10 @@ def recovery_s(fault: Fault, acks: dict, stats: list) -> float | None:
            if fault.kind == "kill" and actor is not None else set())
     ack = min((t for (a, inc, _), t in acks.items() if t > since
                and (actor is None or (a == actor and inc not in old))), default=None)
-    before = max((v["param_version"] for t, r, _, v in stats
-                  if r == "learner" and t <= end and "param_version" in v), default=-1)
-    newer = min((t for t, r, _, v in stats if r == "learner" and t > end
+    before = max((v["param_version"] for t, r, i, v in stats
+                  if (r, i) == ("learner", "0") and t <= end and "param_version" in v),
+                 default=-1)  # rank 0's: the version the actors get
+    newer = min((t for t, r, i, v in stats if (r, i) == ("learner", "0") and t > end
                  and v.get("param_version", -1) > before), default=None)
     if ack is None or newer is None:
         return None
@@ -154,11 +160,11 @@ def recovery_s(fault: Fault, acks: dict, stats: list) -> float | None:
 
 
 def versions_monotone(stats: list) -> dict[str, bool]:
-    """Per process (the learner; each actor incarnation): did its parameter version ever go
-    back, in arrival order?"""
+    """Per process (the learner, rank 0 of a group; each actor incarnation): did its parameter
+    version ever go back, in arrival order?"""
     series: dict[str, list[float]] = {}
     for _, role, ident, values in stats:
-        if "param_version" not in values or role not in ("learner", "actor"):
+        if "param_version" not in values or (role, ident) != ("learner", "0") and role != "actor":
             continue
         key = role if role == "learner" else f"actor-{ident}/{values.get('incarnation', '?')}"
         series.setdefault(key, []).append(values["param_version"])
@@ -217,7 +223,10 @@ class Chaos:
 
     def __init__(self, args, run_dir: Path):
         self.args, self.run_dir = args, run_dir
-        self.services = ["router", "replay", "learner", *(f"actor-{i}" for i in range(2))]
+        named = {"replay": args.shards, "learner": args.learners}
+        self.services = ["router", *(role if n == 1 else f"{role}-{i}"
+                                     for role, n in named.items() for i in range(n)),
+                         *(f"actor-{i}" for i in range(2))]
         self.window = (args.warmup_s, args.warmup_s + 60.0 * args.minutes)
         self.faults = schedule(args.seed, *self.window, self.services)
         self.injected: list[dict] = []
@@ -233,7 +242,8 @@ class Chaos:
                "--seed", str(self.args.seed), "--run-dir", str(self.run_dir),
                "--total-timesteps", str(10**9), "--train-for-seconds", str(budget),
                "--link-up-bytes-per-s", str(UNLIMITED), "--link-down-bytes-per-s", str(UNLIMITED),
-               "--set", "log_interval_s=10"]
+               "--set", "log_interval_s=10", "--set", f"replay_shards={self.args.shards}",
+               "--set", f"learners={self.args.learners}"]
         self.log = (self.run_dir.parent / "cluster.log").open("w")
         self.t0 = time.monotonic()
         self.cluster = subprocess.Popen(cmd, cwd=ROOT, stdout=self.log, stderr=subprocess.STDOUT,
@@ -248,7 +258,7 @@ class Chaos:
                                  f"before it started; see {self.log.name}")
             time.sleep(0.2)
         spec = json.loads(spec.read_text())
-        self.wire = Wire(spec["endpoint"], spec["run_id"], self.t0)
+        self.wire = Wire(spec["endpoint"], spec["run_id"], self.t0, self.args.shards)
 
     def inject(self, fault: Fault) -> None:
         pid = pid_of(self.cluster.pid, fault.target)
@@ -312,20 +322,24 @@ class Chaos:
                 self.cluster.wait()
 
 
-def replay_keys(run_dir: Path) -> tuple[dict, int, list[tuple[int, int, int]]]:
+def replay_keys(run_dir: Path, shards: int = 1) -> tuple[dict, int, list[tuple[int, int, int]]]:
     """The replay's final state: its ledgers, its insert counter and the keys of the log
-    records after its snapshot."""
+    records after its snapshot — with shards, all of theirs (an actor writes to one shard, so
+    their ledgers never share an actor)."""
     from tpdeb.services.store.persistence import ReplayPersistence
 
-    state, records = ReplayPersistence(run_dir / "replay").load(
-        lambda payload: decode(payload, Trajectory))
-    if state is None:
-        raise SystemExit(f"[chaos] no complete replay snapshot in {run_dir / 'replay'}")
-    logged = []
-    for payload in records:
-        item = decode(payload, Trajectory)
-        logged.append((item.actor_id, item.incarnation, item.seq))
-    return state["ledgers"], state["replay"]["counters"]["inserted"], logged
+    ledgers, inserted, logged = {}, 0, []
+    for name in ["replay"] if shards == 1 else [f"replay-{k}" for k in range(shards)]:
+        state, records = ReplayPersistence(run_dir / name).load(
+            lambda payload: decode(payload, Trajectory))
+        if state is None:
+            raise SystemExit(f"[chaos] no complete replay snapshot in {run_dir / name}")
+        ledgers.update(state["ledgers"])
+        inserted += state["replay"]["counters"]["inserted"]
+        for payload in records:
+            item = decode(payload, Trajectory)
+            logged.append((item.actor_id, item.incarnation, item.seq))
+    return ledgers, inserted, logged
 
 
 def returns(run_dir: Path) -> dict:
@@ -359,7 +373,7 @@ def summarise(chaos: Chaos, code: int) -> dict:
         if "skipped" not in row:
             fault = Fault(row["at_s"], row["kind"], row["target"], row["end_s"] - row["at_s"])
             row["recovery_s"] = recovery_s(fault, acks, stats)
-    ledgers, inserted, logged = replay_keys(chaos.run_dir)
+    ledgers, inserted, logged = replay_keys(chaos.run_dir, chaos.args.shards)
     monotone = versions_monotone(stats)
     by_kind = {}
     for kind in KINDS:
@@ -372,6 +386,7 @@ def summarise(chaos: Chaos, code: int) -> dict:
                          "median_s": round(statistics.median(times), 1) if times else None,
                          "max_s": round(max(times), 1) if times else None}
     return {"seed": chaos.args.seed, "minutes": chaos.args.minutes, "env_id": chaos.args.env_id,
+            "replay_shards": chaos.args.shards, "learners": chaos.args.learners,
             "exit_code": code, "faults": chaos.injected, "by_kind": by_kind,
             "audit": audit(set(acks), ledgers, inserted, logged),
             "versions_monotone": all(monotone.values()),
@@ -437,11 +452,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--env-id", default="HalfCheetah-v5")
     p.add_argument("--warmup-s", type=float, default=60.0, help="calm before the first fault")
     p.add_argument("--calm-s", type=float, default=120.0, help="calm after the last fault")
+    p.add_argument("--shards", type=int, default=1, help="replay shards (replay_shards)")
+    p.add_argument("--learners", type=int, default=1, help="data-parallel learner ranks")
     p.add_argument("--out", type=Path, help="the result as JSON")
     p.add_argument("--plan", action="store_true", help="print the schedule and exit")
     args = p.parse_args(argv)
     if args.minutes <= 0 or args.warmup_s < 0 or args.calm_s < 0:
         p.error("--minutes must be > 0, --warmup-s and --calm-s ≥ 0")
+    if not 1 <= args.shards <= 2 or args.learners < 1:
+        p.error("--shards must be 1 or 2 (one per actor of the default cluster), --learners ≥ 1")
     out = ROOT / "bench" / "out" / "chaos"
     chaos = Chaos(args, out / "run")
     if args.plan:

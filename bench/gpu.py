@@ -74,10 +74,11 @@ def learner_rates(args, device) -> list[dict]:
 
 
 def by_role(seconds: dict[tuple[int, str], float]) -> dict[str, float]:
-    """CPU seconds per role (the actors together) from {(pid, service name): seconds}."""
+    """CPU seconds per role (the actors together, replay shards together, learner ranks
+    together) from {(pid, service name): seconds}."""
     out: dict[str, float] = {}
     for (_, name), value in seconds.items():
-        role = "actors" if name.startswith("actor") else name
+        role = "actors" if name.startswith("actor") else name.split("-")[0]
         out[role] = out.get(role, 0.0) + value
     return out
 
@@ -91,16 +92,21 @@ def services_below(root: int) -> dict[tuple[int, str], int]:
     return found
 
 
-def cluster_run(args, actors: int, device: str) -> dict:
-    run_dir = OUT / "runs" / f"{actors}actors-{device}"
-    cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", args.env_id,
+def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int = 1,
+                env_id: str | None = None, out: Path = OUT) -> dict:
+    env_id = env_id or args.env_id
+    name = f"{env_id}-{actors}actors-{device}" + (f"-{shards}shards-{learners}learners"
+                                                  if (shards, learners) != (1, 1) else "")
+    run_dir = out / "runs" / name
+    cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id,
            "--total-timesteps", str(10**9), "--train-for-seconds", str(args.cluster_seconds),
            "--actors", str(actors), "--num-envs", "4", "--seed", str(args.seed),
-           "--run-dir", str(run_dir), "--set", f"device={device}"]
+           "--run-dir", str(run_dir), "--set", f"device={device}",
+           "--set", f"replay_shards={shards}", "--set", f"learners={learners}"]
     subprocess.run(["rm", "-rf", str(run_dir)], check=False)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    with (OUT / f"cluster_{actors}actors-{device}.log").open("w") as log:
+    with (out / f"cluster_{name}.log").open("w") as log:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                                 start_new_session=True)
         sampler = CpuSampler(lambda: services_below(proc.pid), 1.0)
@@ -117,16 +123,24 @@ def cluster_run(args, actors: int, device: str) -> dict:
     end_file = run_dir / "end.json"
     end = json.loads(end_file.read_text()) if end_file.is_file() else {}
     train_s = end.get("train_elapsed_s") or float("nan")
-    row = {"actors": actors, "device": device, "exit_code": code, "wall_s": round(wall, 1),
+    row = {"env_id": env_id, "actors": actors, "replay_shards": shards, "learners": learners,
+           "device": device, "exit_code": code, "wall_s": round(wall, 1),
            "env_steps_per_s": end.get("global_step", 0) / train_s,
            "updates_per_s": end.get("updates", 0) / train_s,
            "cpu_per_s": {k: round(v / wall, 2) for k, v in by_role(sampler.last).items()}}
     cpu = row["cpu_per_s"]
-    print(f"[gpu] {actors} actors, learner on {device}: {row['env_steps_per_s']:,.0f} env steps/s, "
+    print(f"[gpu] {env_id}, {actors} actors, {shards} shard(s), {learners} learner(s) on {device}: "
+          f"{row['env_steps_per_s']:,.0f} env steps/s, "
           f"{row['updates_per_s']:,.0f} updates/s; CPU/s replay {cpu.get('replay', 0):.2f}, "
           f"router {cpu.get('router', 0):.2f}, learner {cpu.get('learner', 0):.2f}, actors "
           f"{cpu.get('actors', 0):.2f} (exit {code})", flush=True)
     return row
+
+
+def cpu_cells(cpu: dict) -> str:
+    """A table row's CPU-per-second cells: replay, router, learner, actors."""
+    return " | ".join(f"{cpu.get(role, 0):.2f}" for role in ("replay", "router", "learner",
+                                                              "actors"))
 
 
 def tables(result: dict) -> str:
@@ -139,11 +153,8 @@ def tables(result: dict) -> str:
     out += ["", "| actors × 4 envs | learner | env steps/s | updates/s | CPU/s replay | router "
             "| learner | actors |", "|---|---|---|---|---|---|---|---|"]
     for r in result["cluster"]:
-        c = r["cpu_per_s"]
         out.append(f"| {r['actors']} | {r['device']} | {r['env_steps_per_s']:,.0f} | "
-                   f"{r['updates_per_s']:,.0f} "
-                   f"| {c.get('replay', 0):.2f} | {c.get('router', 0):.2f} | "
-                   f"{c.get('learner', 0):.2f} | {c.get('actors', 0):.2f} |")
+                   f"{r['updates_per_s']:,.0f} | {cpu_cells(r['cpu_per_s'])} |")
     return "\n".join(out)
 
 

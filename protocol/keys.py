@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import re
 
-SCHEMA_VERSION = 7  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
+SCHEMA_VERSION = 8  # 2: fragments and acks carry the actor's incarnation; 3: sample replies carry
 # per-step weights (step-level PER); 4: and no longer the number of transitions drawn (the loss
 # normalises by the weights' sum); 5: a sample reply carries its fragments stacked (Batch);
 # 6: one fragment schema (tpdeb_core/schema.py): fragments no longer carry the actor's values,
 # acks the ingested count, parameters their source; the run spec names the policy's std;
-# 7: the run spec carries the env's keyword arguments
+# 7: the run spec carries the env's keyword arguments; 8: sample requests may carry the B_p
+# rows of a batch split over replay shards, replies what the replay holds
 
 RUN_ID_RULE = r"[A-Za-z0-9_.-]{1,64}"
 NAME_RULE = r"[A-Za-z0-9_.-]+"  # role and ident chunks: no '/', '*', '$', '?', '#' (Zenoh syntax)
@@ -35,21 +36,33 @@ def _chunk(what: str, value) -> str:
     return text
 
 
-class Keys:
-    """Every Zenoh key expression of one run, under tpdeb/{run_id}/…"""
+SHARDED = ("traj", "ack", "sample", "priorities")  # the topics a replay shard has its own of
+ANY_SHARD = "*"
 
-    def __init__(self, run_id: str):
+
+class Keys:
+    """Every Zenoh key expression of one run, under tpdeb/{run_id}/…
+
+    `shard`: the keys of one replay shard (`replay_shards` > 1): its fragments, acks, samples and
+    priorities under tpdeb/{run_id}/shard/{k}/…, every other topic the run's; ANY_SHARD: every
+    shard's (an access rule's wildcard). None: an unsharded run's (one replay)."""
+
+    def __init__(self, run_id: str, shard: int | str | None = None):
         if not isinstance(run_id, str) or not re.fullmatch(RUN_ID_RULE, run_id):
             raise ValueError(f"run_id {run_id!r} is invalid: it must match {RUN_ID_RULE} "
                              "(letters, digits, '_', '.', '-'; 1 to 64 characters)")
-        self.run_id = run_id
+        if shard is not None and shard != ANY_SHARD and (
+                isinstance(shard, bool) or not isinstance(shard, int) or shard < 0):
+            raise ValueError(f"shard {shard!r} must be an int >= 0, {ANY_SHARD!r} or None")
+        self.run_id, self.shard = run_id, shard
         self.prefix = p = f"tpdeb/{run_id}"
-        self.traj_all = f"{p}/traj/*"
-        self.ack_all = f"{p}/ack/*"
+        self.shard_prefix = s = p if shard is None else f"{p}/shard/{shard}"
+        self.traj_all = f"{s}/traj/*"
+        self.ack_all = f"{s}/ack/*"
         self.params = f"{p}/params"
         self.params_latest = f"{p}/params/latest"
-        self.sample = f"{p}/sample"
-        self.priorities = f"{p}/priorities"
+        self.sample = f"{s}/sample"
+        self.priorities = f"{s}/priorities"
         self.spec = f"{p}/spec"
         self.control = f"{p}/control"
         self.join = f"{p}/join"
@@ -57,13 +70,18 @@ class Keys:
         self.alive_all = f"{p}/alive/**"
 
     def __repr__(self) -> str:
-        return f"Keys({self.run_id!r})"
+        return f"Keys({self.run_id!r})" if self.shard is None else \
+            f"Keys({self.run_id!r}, shard={self.shard!r})"
+
+    def of_shard(self, shard: int | str | None) -> Keys:
+        """The same run's keys for one replay shard (None: unsharded)."""
+        return Keys(self.run_id, shard)
 
     def traj(self, actor_id: int) -> str:
-        return f"{self.prefix}/traj/{check_actor_id(actor_id)}"
+        return f"{self.shard_prefix}/traj/{check_actor_id(actor_id)}"
 
     def ack(self, actor_id: int) -> str:
-        return f"{self.prefix}/ack/{check_actor_id(actor_id)}"
+        return f"{self.shard_prefix}/ack/{check_actor_id(actor_id)}"
 
     def stats(self, role: str, ident: str | int) -> str:
         return f"{self.prefix}/stats/{_chunk('role', role)}/{_chunk('ident', ident)}"
@@ -79,7 +97,7 @@ class Keys:
         """The actor id in this run's …/traj/{n} or …/ack/{n}; None for any other key."""
         key = str(key)  # a Zenoh KeyExpr prints as its text
         for topic in ("traj", "ack"):
-            head = f"{self.prefix}/{topic}/"
+            head = f"{self.shard_prefix}/{topic}/"
             if key.startswith(head) and _DECIMAL.fullmatch(key[len(head):]):
                 value = int(key[len(head):])
                 return value if value <= MAX_ACTOR_ID else None

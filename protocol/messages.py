@@ -43,6 +43,7 @@ PRIORITY_MODES = ("trajectory", "step", "none")  # as tpdeb_core.replay, which w
 POLICY_STDS = ("global", "state")  # as tpdeb_core.policy, which we may not import
 CONTROL_COMMANDS = ("stop",)
 MAX_BATCH_SIZE = 4096
+MAX_REPLAY_SHARDS = 256
 
 
 def wire(rule, **kwargs):
@@ -68,6 +69,8 @@ class RunSpec:
     action_low: np.ndarray = wire(Array(F4, "act_dim"))  # float32[act_dim]
     action_high: np.ndarray = wire(Array(F4, "act_dim"))
     env_kwargs: str = wire(Str(max_len=4096), default="")  # gym.make's, as sorted JSON
+    # replay servers of the run: an actor writes to shard actor_id mod replay_shards
+    replay_shards: int = wire(Int(ge=1, le=MAX_REPLAY_SHARDS), default=1)
     schema_version: int = wire(Int(), default=SCHEMA_VERSION)
 
     def cross_check(self, scope: Scope, where: str) -> None:
@@ -131,6 +134,14 @@ class SampleRequest:
     request_id: int = wire(Int())
     batch_size: int = wire(Int(ge=1, le=MAX_BATCH_SIZE))
     beta: float = wire(Float(ge=0.0, le=1.0))  # importance-weight exponent
+    # B_p's rows where the learner splits batches over replay shards (tpdeb_core.shards); None:
+    # round(ζB), the replay's own split
+    num_prioritized: int | None = wire(OrNone(Int(ge=0, le=MAX_BATCH_SIZE)), default=None)
+
+    def cross_check(self, scope: Scope, where: str) -> None:
+        if self.num_prioritized is not None and self.num_prioritized > self.batch_size:
+            raise DecodeError("value", f"{where}.num_prioritized={self.num_prioritized} is more "
+                                       f"than the batch ({self.batch_size})")
 
 
 @dataclass(eq=False)
@@ -178,12 +189,19 @@ class SampleReply:
     obs_moments: Moments | None = wire(OrNone(Nested(Moments)))
     ret_moments: Moments | None = wire(OrNone(Nested(Moments)))
     reason: str = wire(Str(), default="")
+    # What the replay holds when it answers (tpdeb_core.shards.ShardView): B_p's and B_u's item
+    # counts, B_p's sampling mass and its P_min's mass — a sharded learner's next split
+    prioritized_items: int = wire(Int(), default=0)
+    uniform_items: int = wire(Int(), default=0)
+    mass: float = wire(Float(ge=0.0), default=0.0)
+    min_mass: float = wire(Float(ge=0.0), default=0.0)
 
     @classmethod
-    def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0) -> SampleReply:
-        """The empty reply: no batch, and why (e.g. "rate limiter")."""
+    def not_ready(cls, request_id: int, reason: str, inserted_steps: int = 0,
+                  view: tuple = (0, 0, 0.0, 0.0)) -> SampleReply:
+        """The empty reply: no batch, and why (e.g. "rate limiter"), with the replay's view."""
         return cls(request_id, False, np.zeros(0, np.int64), np.zeros(0, np.float32),
-                   np.zeros(0, bool), None, None, inserted_steps, None, None, reason)
+                   np.zeros(0, bool), None, None, inserted_steps, None, None, reason, *view)
 
     def cross_check(self, scope: Scope, where: str) -> None:
         if not self.ready and (self.batch is not None or not self.reason):

@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from tpdeb.protocol import messages as m
-from tpdeb.protocol.keys import Keys
+from tpdeb.protocol.keys import ANY_SHARD, SHARDED, Keys
 
 ROLES = ("replay", "learner", "actor", "monitor", "link", "evaluator")
 
@@ -70,9 +70,10 @@ TOPICS: tuple[Topic, ...] = (
           ("learner", "monitor", "evaluator"), own_key=True,
           why="the evaluator hears the learner's global step and reports its figures"),
     Topic("alive", "token", (), ("replay", "learner", "actor", "evaluator"),
-          ("actor", "monitor"), own_key=True,
-          watch=(("actor", "replay"), ("monitor", "all")),
-          why="an actor resends its outbox when the replay (re)appears"),
+          ("actor", "learner", "monitor"), own_key=True,
+          watch=(("actor", "replay"), ("learner", "replay"), ("monitor", "all")),
+          why="an actor resends its outbox when the replay (re)appears; the learner leaves a "
+              "replay shard that is gone out of its batches"),
 )
 BY_NAME = {topic.name: topic for topic in TOPICS}
 
@@ -104,9 +105,9 @@ def heard_key(keys: Keys, topic: Topic, role: str, ident: int | str = 0) -> str:
     """What a consumer (`role`, `ident`) subscribes to, asks or watches for `topic`."""
     if topic.name == "ack":  # each actor hears its own acks only (a pool: all of them)
         return keys.ack_all if ident == ANY else keys.ack(ident)
-    if topic.kind == "token":
+    if topic.kind == "token":  # every token of the watched role (replay shards: one each)
         watched = dict(topic.watch)[role]
-        return all_keys(keys, topic) if watched == "all" else keys.alive(watched, 0)
+        return all_keys(keys, topic) if watched == "all" else keys.of_role(topic.name, watched)
     return all_keys(keys, topic)
 
 
@@ -115,11 +116,13 @@ def grants(keys: Keys, role: str, ident: int | str = 0) -> list[tuple[str, str, 
     (`ingress`) and what the router may hand it (`egress`), from TOPICS alone."""
     out: list[tuple[str, str, str]] = []
     for topic in TOPICS:
-        if role in topic.producers:
-            out += _producer_grants(topic, produced_key(keys, topic, role, ident),
-                                    all_keys(keys, topic))
-        if role in topic.consumers:
-            out += _consumer_grants(topic, heard_key(keys, topic, role, ident))
+        # a replay shard's topics: the unsharded run's keys and every shard's
+        for k in ((keys, keys.of_shard(ANY_SHARD)) if topic.name in SHARDED else (keys,)):
+            if role in topic.producers:
+                out += _producer_grants(topic, produced_key(k, topic, role, ident),
+                                        all_keys(k, topic))
+            if role in topic.consumers:
+                out += _consumer_grants(topic, heard_key(k, topic, role, ident))
     return out
 
 

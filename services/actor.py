@@ -47,6 +47,7 @@ from tpdeb.services.net.wire import policy_from_params, spec_mismatch
 from tpdeb.services.process import StopSignal, actor_id_file, configure, fail, obey_control
 from tpdeb.services.seeding import seed_everything
 from tpdeb.tpdeb_core.fragments import Collector
+from tpdeb.tpdeb_core.shards import shard_of
 
 PROG = "tpdeb-actor"
 log = logging.getLogger(PROG)
@@ -100,7 +101,6 @@ class ActorService:
     def __init__(self, config: ActorServiceConfig, spec, envs, session, stop: StopSignal):
         self.config, self.spec, self.envs, self.session, self.stop = (
             config, spec, envs, session, stop)
-        self.keys = Keys(config.run_id)
         self.log_bad = rate_limited(log)
         self.collector: Collector | None = None  # made when the first parameters arrive
         self.outbox = Outbox(config.outbox_fragments)
@@ -115,6 +115,9 @@ class ActorService:
         self.puller = threading.Thread(target=self._pull_params, daemon=True, name="params")
         self.params_cancel = zenoh.CancellationToken()
         self.actor_id = int(config.actor_id)  # `auto` is resolved before (join_run)
+        # its replay shard's keys for fragments and acks, the run's for the rest
+        self.shard = shard_of(self.actor_id, spec.replay_shards)
+        self.keys = Keys(config.run_id, self.shard if spec.replay_shards > 1 else None)
         s, k = session, self.keys
         # BLOCK: on a congested link a fragment waits for room instead of being dropped (the
         # outbox bounds how much can wait; wait_before_close is set far above that).
@@ -128,7 +131,7 @@ class ActorService:
         # The replay server (re)appearing — a restart, or this actor reconnecting after a
         # partition — means acks may have been lost: resend the outbox at once.
         self.replay_watch = s.liveliness().declare_subscriber(
-            k.alive("replay", 0), self._on_replay_alive, history=True)
+            k.alive("replay", self.shard), self._on_replay_alive, history=True)
 
     # -- callbacks (Zenoh threads): store, never block
     def _on_params(self, sample) -> None:

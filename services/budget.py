@@ -55,9 +55,13 @@ class Budget:
     def progress(self, global_step: int) -> float:
         """The fraction of the run done: that of the limit furthest along (the one that will
         bind first, as far as anyone can tell now), in [0, 1]."""
+        return self.progress_at(global_step, self.elapsed())
+
+    def progress_at(self, global_step: int, elapsed_s: float) -> float:
+        """`progress` at a given step count and training time (a learner group's rank 0's)."""
         done = global_step / self.total_timesteps
         if self.train_for_seconds > 0:
-            done = max(done, self.elapsed() / self.train_for_seconds)
+            done = max(done, elapsed_s / self.train_for_seconds)
         return min(1.0, done)
 
     def reached(self, global_step: int) -> str | None:

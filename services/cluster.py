@@ -166,6 +166,10 @@ class Cluster:
             argv += ["--connect", self.plan.endpoint]
         if spec.role == "actor":
             argv += ["--actor-id", str(index)]
+        if spec.role == "replay" and spec.replicas > 1:
+            argv += ["--shard", str(index)]
+        if spec.role == "learner" and spec.replicas > 1:
+            argv += ["--rank", str(index), "--group-endpoint", self.plan.group_endpoint]
         if self.plan.link_endpoint and spec.role in ("router", "actor"):  # the link's ends
             argv += ["--tcp-buffer-bytes", str(self.link_tcp_buffer())]
         return argv + [str(a) for a in spec.args]
@@ -346,12 +350,16 @@ class Cluster:
 
     def on_exit(self, child: Child, code: int, now: float) -> int | None:
         say = self.display.echo
-        if child.role == "learner" and code == 0:  # the learner ends the run
+        if child.role == "learner" and code == 0 and child.ident == "0":  # it ends the run
             self.finishing.set()
-            say(f"[{PROG}] learner exited with code 0")
+            say(f"[{PROG}] {child.name} exited with code 0")
             return 130 if self.interrupted else 0
         if self.stopping.is_set():
             return None
+        if child.role == "learner" and code == 0:
+            return None  # a rank above 0 leaves with its group; rank 0 ends the run
+        if child.role == "learner" and not self.finishing.is_set():
+            self.restart_group(child)
         if code == 0 and child.role != "learner" and self.learner_finishing():
             return None  # it left on the learner's stop message; the learner exits next
         if self.finishing.is_set():
@@ -384,6 +392,19 @@ class Cluster:
         say(f"[{PROG}] {child.name} exited with code {code}: stopping the run ({policy}; see "
             f"{child.log_path})")
         return 1
+
+    def restart_group(self, failed: Child) -> None:
+        """A learner rank died: the others wait in vain for it in their next exchange, so they
+        are killed too and every rank restarts by its policy, the group from rank 0's last
+        checkpoint."""
+        others = [c for c in self.children if c.role == "learner" and c is not failed
+                  and c.running]
+        if others:
+            self.display.echo(f"[{PROG}] {failed.name} failed: restarting the learner group "
+                              f"({', '.join(c.name for c in others)} too) from its last "
+                              "checkpoint")
+        for other in others:
+            other.kill_hung()
 
     def check_actors(self) -> int | None:
         actors = [c for c in self.children if c.role == "actor"]

@@ -46,7 +46,8 @@ def problem(role: str, config, timeout_s: float) -> str | None:
         endpoint = local(config.listen[0])
         state = probe_endpoint(endpoint, security, timeout_s)
         return None if state == "up" else f"the router at {endpoint} is {state}"
-    ident = actor_ident(config) if role == "actor" else "0"
+    ident = {"actor": lambda: actor_ident(config), "replay": lambda: str(config.shard),
+             "learner": lambda: str(config.rank)}.get(role, lambda: "0")()  # a shard's, a rank's
     endpoints = list(config.connect) or [local(e) for e in config.listen]
     session = open_session("client", [], endpoints, timeout_s, 0, security)
     try:

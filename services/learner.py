@@ -59,7 +59,9 @@ from tpdeb.services.net.session import close_session, declare_publisher, fetch_s
 from tpdeb.services.net.wire import finite_values
 from tpdeb.services.policy_file import POLICY_FILE, acting_arrays, policy_bytes, policy_meta
 from tpdeb.services.process import StopSignal, configure, fail
+from tpdeb.services.ranks import Agreement, Group, learner_tensors, rank_device
 from tpdeb.services.seeding import seed_everything
+from tpdeb.services.shards import ShardSet
 from tpdeb.services.store.checkpoint import (
     BEST_CHECKPOINT,
     FINAL,
@@ -84,9 +86,12 @@ LINK_TAGS = ("up_bytes_per_s", "down_bytes_per_s", "queue_bytes", "latency_ms")
 
 class LearnerService:
     def __init__(self, config: LearnerServiceConfig, spec: RunSpec, session, stop: StopSignal,
-                 resume: tuple[Path, dict] | None = None):
-        """`resume`: the checkpoint (path, state) to continue from (see `choose_resume`)."""
+                 resume: tuple[Path, dict] | None = None, group: Group | None = None):
+        """`resume`: the checkpoint (path, state) to continue from (see `choose_resume`);
+        `group`: this learner's place among data-parallel learners (services/ranks.py)."""
         self.config, self.spec, self.session, self.stop = config, spec, session, stop
+        self.group, self.rank = group, group.rank if group is not None else 0
+        self.agreed: Agreement | None = None  # the group's, for the update under way
         self.keys = Keys(config.run_id)
         seed_everything(config.seed)
         self.model = model_for(spec)
@@ -97,6 +102,8 @@ class LearnerService:
             self.learner = Learner(self.model, config.loss_config(), self.device)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
+        if group is not None:
+            self.learner.rules.reduce = group.average
         self.run_dir = config.default_run_dir()
         self.global_step = 0
         self.budget = Budget(config.total_timesteps, config.train_for_seconds)
@@ -118,8 +125,9 @@ class LearnerService:
         self.actor_stats: dict[str, dict] = {}  # the latest of each (delivery counters)
         self.trained_keys: set[int] = set()
         self.trained_floor = -1  # keys ≤ this are no longer remembered (see train_on)
-        self.replay_items = config.prioritized_capacity + (
-            config.uniform_capacity_steps // config.fragment_len)
+        # (in keys: with replay shards a batch's keys are key · K + shard)
+        self.replay_items = (config.prioritized_capacity + (
+            config.uniform_capacity_steps // config.fragment_len)) * spec.replay_shards
         self.lag_sum, self.lag_count = 0.0, 0
         self.evaluations_logged = 0
         self.recent_returns: deque[float] = deque(maxlen=20)
@@ -131,6 +139,8 @@ class LearnerService:
         self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
         self.params_lock = threading.Lock()
         self._declare()
+        if group is not None:
+            self._join_group()
 
     def _pipeline(self) -> None:
         """The batches' queue, the compiled update and the priorities waiting to go."""
@@ -138,8 +148,9 @@ class LearnerService:
         # batches while an update runs
         self.batches: queue.Queue[tuple[SampleReply, Batch]] = queue.Queue(
             maxsize=self.config.requests_in_flight)
-        self.compiler = (BackgroundCompile(self.learner) if self.config.compile == "auto"
-                         else None)
+        # (data-parallel learners run eager: their update exchanges gradients in its middle)
+        self.compiler = (BackgroundCompile(self.learner)
+                         if self.config.compile == "auto" and self.group is None else None)
         self.compiled = False
         self.pending: tuple | None = None  # a batch's priorities not yet sent
 
@@ -162,15 +173,38 @@ class LearnerService:
         # _answer_latest). Latest wins, so a congested link may drop one.
         self.params_publisher = declare_publisher(s, "params", k.params)
         self.priorities_publisher = declare_publisher(s, "priorities", k.priorities)
+        # replay shards: each one's sample queryable and priorities, one batch from all
+        shards = self.spec.replay_shards
+        self.shard_set = (ShardSet(shards, self.config.zeta, self.config.seed + 7919 * self.rank,
+                                   retry_s=self.config.request_timeout_s)
+                          if shards > 1 else None)
+        self.shard_keys = [k.of_shard(shard) for shard in range(shards)] if shards > 1 else []
+        self.shard_priorities = [declare_publisher(s, "priorities", keys.priorities)
+                                 for keys in self.shard_keys]
+        self.replay_watch = (s.liveliness().declare_subscriber(
+            k.of_role("alive", "replay"), self._on_replay_alive, history=True)
+            if self.shard_set is not None else None)
         self.control_publisher = declare_publisher(s, "control", k.control)
-        self.stats_publisher = declare_publisher(s, "stats", k.stats("learner", 0))
-        self.latest_queryable = s.declare_queryable(k.params_latest, self._answer_latest)
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("learner", self.rank))
+        # rank 0 answers for the group (its parameters are every rank's)
+        self.latest_queryable = (s.declare_queryable(k.params_latest, self._answer_latest)
+                                 if self.rank == 0 else None)
         self.stats_subscriber = s.declare_subscriber(k.stats_all, self.stats_inbox.put)
-        self.token = s.liveliness().declare_token(k.alive("learner", 0))
+        self.token = s.liveliness().declare_token(k.alive("learner", self.rank))
         self.fetch_cancel = zenoh.CancellationToken()
         self.fetchers = [threading.Thread(target=self._fetch_loop, args=(i,), daemon=True,
                                           name=f"fetch-{i}")
                          for i in range(self.config.requests_in_flight)]
+
+    def _join_group(self) -> None:
+        """Rank 0's learner (restored from its checkpoint, or new) copied to every rank."""
+        numbers = self.group.broadcast_state(
+            learner_tensors(self.learner, self.model),
+            [self.global_step, self.budget.spent_before, self.learner.updates])
+        self.global_step, self.budget.spent_before = int(numbers[0]), numbers[1]
+        self.learner.updates = int(numbers[2])
+        log.info(f"learner rank {self.rank} of {self.group.size}: the group starts from rank "
+                 f"0's state ({self.learner.updates:,} updates, {self.global_step:,} env steps)")
 
     # -- checkpoints
     def _start_from(self, resume: tuple[Path, dict] | None) -> None:
@@ -240,7 +274,9 @@ class LearnerService:
     def publish_params(self, eager: bool = False) -> None:
         """A new version exists: answer the queries waiting for one (and put it on the `params`
         key for any monitor). Encoded only when someone takes it: actors ask once per fragment,
-        far less often than the learner updates."""
+        far less often than the learner updates. Rank 0 alone publishes for a group."""
+        if self.rank:
+            return
         version = self.param_version()
         # on disk before any actor can hold this version; if the disk refuses, actors keep the
         # version they have until it takes the mark
@@ -307,6 +343,15 @@ class LearnerService:
         finally:
             query.drop()
 
+    def _on_replay_alive(self, sample) -> None:
+        """A replay shard's token appeared (it is asked again) or went (left out until then)."""
+        ident = str(sample.key_expr).rsplit("/", 1)[-1]
+        if ident.isdecimal() and int(ident) < self.shard_set.shards:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self.shard_set.back(int(ident))
+            else:
+                self.shard_set.gone(int(ident))
+
     # -- batches in
     def beta(self) -> float:
         progress = self.budget.progress(self.global_step)
@@ -332,12 +377,26 @@ class LearnerService:
     def fetch(self, request_id: int) -> SampleReply | None:
         """One sample request: the batch, or None when the replay had none to give (absent,
         rate-limited) or its reply was bad."""
+        if self.shard_set is not None:
+            return self.fetch_sharded(request_id)
         request = SampleRequest(request_id=request_id, batch_size=self.config.batch_fragments,
                                 beta=self.beta())
-        batch = None
-        for reply in self.session.get(self.keys.sample, payload=encode(request),
-                                      timeout=self.config.request_timeout_s,
-                                      cancellation_token=self.fetch_cancel):
+        got = self._answer(self._ask(self.keys.sample, request))
+        if got is None:
+            return None
+        self.global_step = max(self.global_step, got.inserted_steps)
+        return got if got.ready else None
+
+    def _ask(self, key: str, request: SampleRequest):
+        """A sample query sent (its replies come through the handler returned)."""
+        return self.session.get(key, payload=encode(request),
+                                timeout=self.config.request_timeout_s,
+                                cancellation_token=self.fetch_cancel)
+
+    def _answer(self, replies) -> SampleReply | None:
+        """The last good reply to a sample query (None: none came, or none could be read)."""
+        got = None
+        for reply in replies:
             if reply.ok is None:
                 continue
             try:
@@ -345,11 +404,40 @@ class LearnerService:
                              self.config.max_message_bytes)
             except DecodeError as exc:
                 self.log_bad(exc.kind, f"dropped a bad sample reply ({exc})")
-                continue
-            self.global_step = max(self.global_step, got.inserted_steps)
-            if got.ready:
-                batch = got
-        return batch
+        return got
+
+    def fetch_sharded(self, request_id: int) -> SampleReply | None:
+        """One batch from the replay shards: each asked for its rows at once; the rows of a
+        shard that was not ready (or did not answer) asked again of those that were. None when
+        the batch could not be filled (what its replies carried of the normalisers' moments
+        is kept for the next one)."""
+        shards, beta, size = self.shard_set, self.beta(), self.config.batch_fragments
+        counts, ready = shards.plan(size), []
+        for _ in range(2):
+            asked = {shard: self._ask(self.shard_keys[shard].sample, SampleRequest(
+                request_id=request_id, batch_size=int(n_p + n_u), beta=beta,
+                num_prioritized=int(n_p))) for shard, (n_p, n_u) in enumerate(counts) if n_p + n_u}
+            missing = 0
+            for shard, replies in asked.items():
+                got = self._answer(replies)
+                if got is None:
+                    shards.missed(shard)
+                else:
+                    shards.heard(shard, got)
+                if got is not None and got.ready:
+                    ready.append((shard, got))
+                else:
+                    missing += int(counts[shard].sum())
+            if not missing:
+                break
+            counts = shards.plan(missing, among=sorted({shard for shard, _ in ready}))
+            if not counts.any():
+                break
+        self.global_step = max(self.global_step, shards.inserted_steps)
+        if sum(len(reply.keys) for _, reply in ready) < size:
+            shards.set_aside([reply for _, reply in ready])
+            return None
+        return shards.join(ready, beta)
 
     # -- the loop
     def run(self) -> bool:
@@ -363,28 +451,31 @@ class LearnerService:
         log.info(f"run {cfg.run_id}: training {self.spec.env_id} for {self.budget.describe()} "
                   f"({cfg.algo}, preset: {shown(cfg.preset)}) on {describe(self.device)}; run "
                   f"dir {self.run_dir}")
-        start = last_log = last_stats = last_checkpoint = time.monotonic()
-        first_step = last_step = stats_step = self.global_step
+        start = last_checkpoint = time.monotonic()
+        self.reported = (start, self.global_step, start, self.global_step)
+        first_step = self.global_step
         checkpointed_updates = self.learner.updates
-        while not self.stop and not self.limit_reached():
+        while True:
             waited = time.perf_counter()
-            try:
-                batch = self.batches.get(timeout=0.1)
-            except queue.Empty:
-                batch = None
+            if self.group is None:
+                if self.stop or self.limit_reached():
+                    break
+                try:
+                    batch = self.batches.get(timeout=0.1)
+                except queue.Empty:
+                    batch = None
+            else:  # every rank updates together, or they all stop
+                batch = self.group_batch()
+                if batch is None:
+                    break
             self.wait_s += time.perf_counter() - waited
             if batch is not None:
                 self.train_on(*batch)
             self.serve_params()
             self.drain_stats()
-            now = time.monotonic()
-            if now - last_stats >= cfg.stats_interval_s:
-                self.publish_stats((self.global_step - stats_step) / (now - last_stats))
-                last_stats, stats_step = now, self.global_step
-            if now - last_log >= cfg.log_interval_s:
-                self.log_progress((self.global_step - last_step) / (now - last_log))
-                last_log, last_step = now, self.global_step
-            if cfg.checkpoint_interval_s and now - last_checkpoint >= cfg.checkpoint_interval_s:
+            now = self.report()
+            if (cfg.checkpoint_interval_s and now - last_checkpoint >= cfg.checkpoint_interval_s
+                    and self.rank == 0):
                 last_checkpoint = now
                 # no update since the last one: it would only repeat it
                 if (self.learner.updates != checkpointed_updates
@@ -395,13 +486,48 @@ class LearnerService:
         self.log_progress((self.global_step - first_step) / max(elapsed, 1e-9))
         return finished
 
+    def report(self) -> float:
+        """Stats and the progress line when they are due; returns the time."""
+        now, cfg = time.monotonic(), self.config
+        last_stats, stats_step, last_log, last_step = self.reported
+        if now - last_stats >= cfg.stats_interval_s:
+            self.publish_stats((self.global_step - stats_step) / (now - last_stats))
+            last_stats, stats_step = now, self.global_step
+        if now - last_log >= cfg.log_interval_s:
+            self.log_progress((self.global_step - last_step) / (now - last_log))
+            last_log, last_step = now, self.global_step
+        self.reported = (last_stats, stats_step, last_log, last_step)
+        return now
+
+    def group_batch(self) -> tuple[SampleReply, Batch] | None:
+        """This rank's next batch once the group agrees on the update (`self.agreed`: every
+        rank's moments, rank 0's progress); None when the group stops — a rank's signal or
+        rank 0's budget. Parameters are served and stats published while it waits."""
+        batch = None
+        while batch is None and not (self.stop or (self.rank == 0 and self.limit_reached())):
+            try:
+                batch = self.batches.get(timeout=0.1)
+            except queue.Empty:
+                self.serve_params()
+                self.drain_stats()
+                self.report()
+        reply = batch[0] if batch is not None else None
+        self.agreed = self.group.agree(
+            reply.obs_moments if reply else None, reply.ret_moments if reply else None,
+            self.spec.obs_dim, self.global_step, self.budget.elapsed(), stop=batch is None)
+        return None if self.agreed.stop else batch
+
     def train_on(self, batch: SampleReply, placed: Batch | None = None) -> None:
         """One update on a sample reply (`placed`: its batch on the device already)."""
         cfg = self.config
-        for rms, moments in ((self.model.obs_rms, batch.obs_moments),
-                             (self.model.ret_rms, batch.ret_moments)):
-            if moments is not None:
-                rms.merge(moments.count, moments.mean, moments.m2)
+        if self.agreed is None:  # alone: the moments this batch's reply carries
+            parts = ([batch.obs_moments], [batch.ret_moments])
+        else:  # in a group: every rank's, in rank order, the same on every rank
+            parts = (self.agreed.obs, self.agreed.ret)
+        for rms, moments in zip((self.model.obs_rms, self.model.ret_rms), parts, strict=True):
+            for part in moments:
+                if part is not None:
+                    rms.merge(part.count, part.mean, part.m2)
         self.follow_schedules()
         if placed is None:
             placed = place(batch.batch, batch.weights, batch.step_weights, self.device, self.pin)
@@ -455,10 +581,15 @@ class LearnerService:
         if len(ready) == 4:
             ready[3].synchronize()
         idx = np.flatnonzero(chosen)
-        if len(idx):
-            self.priorities_publisher.put(encode(PriorityUpdate(
-                keys=np.asarray(keys, np.int64)[idx],
-                priorities=priorities.numpy()[idx].astype(np.float64))))
+        if not len(idx):
+            return
+        keys, values = np.asarray(keys, np.int64)[idx], priorities.numpy()[idx].astype(np.float64)
+        if self.shard_set is None:
+            self.priorities_publisher.put(encode(PriorityUpdate(keys=keys, priorities=values)))
+            return
+        for shard, (where, own_keys) in self.shard_set.route(keys).items():
+            self.shard_priorities[shard].put(encode(PriorityUpdate(
+                keys=own_keys, priorities=values[where])))
 
     def prepare_compiled(self, placed: Batch, norm: torch.Tensor) -> None:
         """Start compiling the update after the first one (on its batch), and switch to it
@@ -481,7 +612,9 @@ class LearnerService:
     def follow_schedules(self) -> None:
         """The learning rate and the log-std ceiling where they are annealed, at the run's
         progress (the steps' or the seconds', whichever is further along)."""
-        cfg, progress = self.config, self.budget.progress(self.global_step)
+        cfg, agreed = self.config, self.agreed
+        progress = (self.budget.progress(self.global_step) if agreed is None  # rank 0's, in a group
+                    else self.budget.progress_at(agreed.global_step, agreed.elapsed_s))
         if cfg.anneal_lr:
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
         if cfg.anneal_log_std:
@@ -615,12 +748,14 @@ class LearnerService:
         self.send_priorities(None)  # the last batch's, where they wait a turn
         self.wait_for_compile()
         # Only the end of the run's budget makes the final checkpoint; a stopped run's last is
-        # a periodic one, which the next start resumes from like any other.
-        path = (self.save_checkpoint(FINAL if finished else PERIODIC) if self.learner.updates
-                else "none (no update yet)")
-        if self.learner.updates:
+        # a periodic one, which the next start resumes from like any other. A group's rank 0
+        # keeps the group's checkpoint, policy and end.
+        keeps = self.learner.updates and self.rank == 0
+        path = (self.save_checkpoint(FINAL if finished else PERIODIC) if keeps
+                else "none (no update yet)" if not self.learner.updates else "rank 0's")
+        if keeps:
             self.write_policy()
-        if finished:
+        if finished and self.rank == 0:
             self.write_end(path)
             self.control_publisher.put(encode(Control(command="stop", reason=self.ended_by)))
         self.stop.set("finished")
@@ -680,6 +815,8 @@ def main(argv: list[str] | None = None) -> int:
         # A device this machine lacks or a bad --resume PATH fails here, before any network
         # wait.
         resolve_device(config.device)
+        if config.rank:  # a group's other ranks keep their files apart (rank 0's are the run's)
+            config.run_dir = str(config.default_run_dir() / "ranks" / str(config.rank))
         resume = choose_resume(config.resume, config.default_run_dir(),
                                lambda line: log.info(line))
         session = open_for(config)
@@ -693,7 +830,14 @@ def main(argv: list[str] | None = None) -> int:
             raise ConfigError(f"the replay server trains {spec.env_id!r} with env_kwargs "
                               f"{spec.env_kwargs or '{}'}, this learner was started with "
                               f"--env-id {config.env_id!r} and {config.env_kwargs or '{}'}")
-        service = LearnerService(config, spec, session, stop, resume)
+        group = None
+        if config.learners > 1:  # blocks until every rank is there
+            config.device = rank_device(config.device, config.rank)
+            log.info(f"learner rank {config.rank} of {config.learners}: meeting the others at "
+                     f"{config.group_endpoint}")
+            group = Group(config.rank, config.learners, config.group_endpoint,
+                          resolve_device(config.device), config.group_timeout_s)
+        service = LearnerService(config, spec, session, stop, resume, group)
     except ConfigError as exc:
         close_session(session, PROG)
         if stop:  # stopped while waiting for the replay server: not an error
@@ -706,7 +850,10 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         service.finish(finished)
         close_session(session, PROG)
-    return 0 if finished or stop.reason in ("SIGINT", "SIGTERM") else 1
+        if group is not None:
+            group.close()
+    # a rank above 0 leaves with its group; rank 0 ends the run (or is restarted with it)
+    return 0 if finished or config.rank or stop.reason in ("SIGINT", "SIGTERM") else 1
 
 
 if __name__ == "__main__":

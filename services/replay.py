@@ -161,9 +161,11 @@ class ActorLedger:
 class ReplayServer:
     def __init__(self, config: ReplayServiceConfig, spec, session, stop: StopSignal):
         self.config, self.spec, self.session, self.stop = config, spec, session, stop
-        self.keys = Keys(config.run_id)
-        self.replay = config.make_replay()
-        self.limiter = config.rate_limiter()
+        self.shard = config.shard
+        self.keys = Keys(config.run_id, self.shard if config.replay_shards > 1 else None)
+        part = config.shard_part(self.shard)  # 1/K of the capacities, its own seed
+        self.replay = part.make_replay()
+        self.limiter = part.rate_limiter()
         self.inbox: queue.Queue = queue.Queue()
         self.pending: deque[tuple[Fragment, bytes]] = deque()
         self.waiting: deque[tuple[float, object, SampleRequest]] = deque()
@@ -196,13 +198,15 @@ class ReplayServer:
         ]
         self.queryables = [
             s.declare_queryable(k.sample, lambda q: self.inbox.put(("sample", q))),
-            s.declare_queryable(k.spec, self._answer_spec),
-            s.declare_queryable(k.join, lambda q: self.inbox.put(("join", q))),
+            s.declare_queryable(k.spec, self._answer_spec),  # every shard serves the one spec
         ]
+        if self.shard == 0:  # one shard hands out the actor ids of the whole run
+            self.queryables.append(
+                s.declare_queryable(k.join, lambda q: self.inbox.put(("join", q))))
         self.joined: dict[int, int] = {}  # nonce → the actor id this process handed out
         self.ack_publishers: dict[int, object] = {}
-        self.stats_publisher = declare_publisher(s, "stats", k.stats("replay", 0))
-        self.token = s.liveliness().declare_token(k.alive("replay", 0))
+        self.stats_publisher = declare_publisher(s, "stats", k.stats("replay", self.shard))
+        self.token = s.liveliness().declare_token(k.alive("replay", self.shard))
 
     def _arrived(self, sample) -> None:
         """A trajectory message (on a Zenoh thread): queued, unless its sender is serving a
@@ -535,7 +539,7 @@ class ReplayServer:
                 f"{stats.get('sampled_steps', 0)} sampled")
 
     def _sample(self, request: SampleRequest, steps: int) -> SampleReply:
-        sample = self.replay.sample(request.batch_size, request.beta)
+        sample = self.replay.sample(request.batch_size, request.beta, request.num_prioritized)
         self.limiter.on_sample(steps)
         self.samples_served += 1
         reply = SampleReply(
@@ -546,12 +550,20 @@ class ReplayServer:
             batch=stack_fragments(sample.items),
             inserted_steps=self.inserted_steps,
             obs_moments=Moments(*self.obs_moments) if self.obs_moments[0] else None,
-            ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None)
+            ret_moments=Moments(*self.ret_moments) if self.ret_moments[0] else None,
+            reason="", **self._view())
         self.obs_moments = self.ret_moments = _NO_MOMENTS
         return reply
 
+    def _view(self) -> dict:
+        """What this replay holds (a sharded learner splits its next batch by it)."""
+        view = self.replay.view()
+        return {"prioritized_items": view.prioritized, "uniform_items": view.uniform,
+                "mass": view.mass, "min_mass": view.min_mass}
+
     def _not_ready(self, request: SampleRequest, reason: str) -> SampleReply:
-        return SampleReply.not_ready(request.request_id, reason, self.inserted_steps)
+        return SampleReply.not_ready(request.request_id, reason, self.inserted_steps,
+                                     tuple(self.replay.view()))
 
     def _reply(self, query, reply: SampleReply) -> None:
         try:
@@ -595,7 +607,7 @@ class ReplayServer:
 
     def publish_stats(self) -> None:
         self.stats_publisher.put(encode(Stats(
-            role="replay", ident="0", values=finite_values(self.stats()),
+            role="replay", ident=str(self.shard), values=finite_values(self.stats()),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
 
     def close(self) -> None:
@@ -631,16 +643,20 @@ def main(argv: list[str] | None = None) -> int:
     server_dir = config.default_run_dir()
     try:
         server_dir.mkdir(parents=True, exist_ok=True)
-        (server_dir / "replay.toml").write_text(to_toml(config))
+        (server_dir / ("replay.toml" if config.replay_shards == 1
+                       else f"replay-{config.shard}.toml")).write_text(to_toml(config))
         if config.persist:
-            server.enable_persistence(server_dir / "replay")
+            server.enable_persistence(server_dir / (
+                "replay" if config.replay_shards == 1 else f"replay-{config.shard}"))
     except (ConfigError, OSError, DecodeError, Incompatible) as exc:
         server.close()
         close_session(session, PROG)
         return fail(PROG, exc)
     where = ", ".join(config.listen) or f"the router at {', '.join(config.connect)}"
+    shard = (f" as replay shard {config.shard} of {config.replay_shards}"
+             if config.replay_shards > 1 else "")
     log.info(f"run {config.run_id}: serving {spec.env_id} (obs {spec.obs_dim}, act "
-              f"{spec.act_dim}, T {spec.fragment_len}) on {where}")
+              f"{spec.act_dim}, T {spec.fragment_len}) on {where}{shard}")
     if server.restored:
         log.info(server.restored)
     try:

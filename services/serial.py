@@ -51,6 +51,10 @@ class SerialRunner:
     train_for_seconds, whichever binds first)."""
 
     def __init__(self, config: TrainConfig):
+        if config.replay_shards != 1:
+            raise ConfigError(f"replay_shards={config.replay_shards}: one process has one "
+                              "replay; shards are for a cluster (tpdeb-cluster --set "
+                              "replay_shards=K)")
         self.config = config
         torch.set_num_threads(config.torch_threads)
         self.run_dir = config.default_run_dir()

@@ -41,12 +41,20 @@ def test_compose_starts_in_order_with_healthchecks_secrets_and_a_fixed_run_dir()
     services = compose_services({})
     order = {name: list(s.get("depends_on", {})) for name, s in services.items()}
     assert order == {"secrets": [], "router": ["secrets"], "replay": ["router"],
-                     "learner": ["replay"], "actor": ["learner"]}
+                     "replay-1": ["router"], "learner": ["replay"], "learner-1": ["replay"],
+                     "actor": ["learner"]}
     for name, service in services.items():
-        if name != "secrets":
-            assert service["healthcheck"]["test"] == ["CMD", "tpdeb-health", name]
+        if name != "secrets":  # replay-1 and learner-1 are a replay's and a learner's
+            role = name.split("-")[0]
+            assert service["healthcheck"]["test"] == ["CMD", "tpdeb-health", role]
             assert "TPDEB_PASSWORD" not in service["environment"]  # files, not variables
     env = {name: s.get("environment", {}) for name, s in services.items()}
+    # the second shard and rank only in the `scale` profile, each told which it is
+    assert [n for n, s in services.items() if "profiles" in s] == ["replay-1", "learner-1"]
+    assert (env["replay"]["TPDEB_SHARD"], env["replay-1"]["TPDEB_SHARD"]) == ("0", "1")
+    assert (env["learner"]["TPDEB_RANK"], env["learner-1"]["TPDEB_RANK"]) == ("0", "1")
+    assert str(env["actor"]["TPDEB_REPLAY_SHARDS"]) == str(env["learner-1"]["TPDEB_LEARNERS"]) \
+        == "1"
     assert env["actor"]["TPDEB_ACTOR_ID"] == "auto"  # --scale needs no hand-made ids
     assert env["learner"]["TPDEB_RUN_DIR"] == env["replay"]["TPDEB_RUN_DIR"] == "/runs/compose"
     assert all(e.get("TPDEB_CONNECT", "tls/").startswith("tls/") for e in env.values())
@@ -193,9 +201,18 @@ def test_kustomize_lists_every_manifest_and_every_secret_tpdeb_certs_writes(tmp_
     objects = k8s_objects()
     actors = objects["StatefulSet/tpdeb-actor"]["spec"]
     assert actors["serviceName"] == "tpdeb-actor" and "Service/tpdeb-actor" in objects
-    for kind in ("Deployment/tpdeb-replay", "Deployment/tpdeb-learner"):
-        claim = objects[kind]["spec"]["template"]["spec"]["volumes"][-1]["persistentVolumeClaim"]
-        assert f"PersistentVolumeClaim/{claim['claimName']}" in objects
+    config = objects["ConfigMap/tpdeb-config"]["data"]
+    for role, count in (("replay", "TPDEB_REPLAY_SHARDS"), ("learner", "TPDEB_LEARNERS")):
+        # a shard or a rank per pod ordinal, a volume each, as many as the run is told of
+        spec = objects[f"StatefulSet/tpdeb-{role}"]["spec"]
+        assert f"Service/{spec['serviceName']}" in objects
+        assert str(spec["replicas"]) == config[count]
+        (claim,) = spec["volumeClaimTemplates"]
+        mounts = spec["template"]["spec"]["containers"][0]["volumeMounts"]
+        assert {"name": claim["metadata"]["name"], "mountPath": "/runs"} in mounts
+    group = objects["Service/tpdeb-learner"]["spec"]
+    assert group["publishNotReadyAddresses"] and group["ports"][0]["port"] == 29500
+    assert config["TPDEB_GROUP_ENDPOINT"] == "tpdeb-learner-0.tpdeb-learner:29500"
 
 
 def pod_env(container: dict, config: dict, ordinal: int) -> dict[str, str]:
@@ -226,7 +243,7 @@ def test_the_kubernetes_pods_run_as_the_cluster_would_start_them(procs, tmp_path
     def run_pod(kind: str, ordinal: int = 0, ready: bool = True):
         pod = objects[kind]["spec"]["template"]["spec"]
         name = kind.split("/")[1]
-        runs = f"runs-{name}"  # each Deployment its own persistent volume
+        runs = f"runs-{name}"  # each workload its own persistent volume
         for init in pod.get("initContainers", []):
             proc = stack.start(f"{name}-init", init["command"], stack.env({}, runs), runs)
             assert proc.wait(30) == 0, procs.output(proc)
@@ -238,8 +255,8 @@ def test_the_kubernetes_pods_run_as_the_cluster_would_start_them(procs, tmp_path
         return proc
 
     router = run_pod("Deployment/tpdeb-router")
-    run_pod("Deployment/tpdeb-replay")
-    learner = run_pod("Deployment/tpdeb-learner")
+    run_pod("StatefulSet/tpdeb-replay")
+    learner = run_pod("StatefulSet/tpdeb-learner")
     # podManagementPolicy Parallel: the actors start together
     actors = [run_pod("StatefulSet/tpdeb-actor", i, ready=False) for i in range(2)]
     assert learner.wait(240) == 0, procs.output(learner)

@@ -18,6 +18,7 @@ from cryptography import x509
 
 from tests.procs import ROOT, free_port, pids_with
 from tpdeb.protocol import Keys
+from tpdeb.protocol.keys import ANY_SHARD
 from tpdeb.services.cluster import parse_args
 from tpdeb.services.config import ConfigError, resolve, to_toml
 from tpdeb.services.config.service import ActorServiceConfig, NetConfig, RouterConfig
@@ -378,8 +379,10 @@ def test_a_pool_of_actors_under_one_user_acts_as_any_actor_and_nothing_more():
                 and r["messages"] == [message] and r["flows"] == [flow] for key in r["key_exprs"]}
 
     r = Keys("r")
-    assert keys("actor", "put", "ingress") == {r.traj_all, r.of_role("stats", "actor")}
-    assert keys("actor", "declare_subscriber", "ingress") == {r.ack_all, r.control}
+    s = r.of_shard(ANY_SHARD)  # with replay shards: every shard's fragments and acks
+    assert keys("actor", "put", "ingress") == {r.traj_all, s.traj_all,
+                                               r.of_role("stats", "actor")}
+    assert keys("actor", "declare_subscriber", "ingress") == {r.ack_all, s.ack_all, r.control}
     assert keys("actor", "liveliness_token", "ingress") == {r.of_role("alive", "actor")}
     assert keys("actor", "query", "ingress") == keys("actor-0", "query", "ingress")  # spec, join…
     assert not keys("actor", "declare_queryable", "ingress")  # never answers for anyone
@@ -399,13 +402,18 @@ def test_access_control_is_default_deny_with_one_policy_per_user():
                 if rules[rid]["messages"] == [message] and rules[rid]["flows"] == [flow]}
 
     r, b = Keys("r"), Keys("b")
-    assert keys("actor-0", "put", "ingress") == {r.traj(0), r.stats("actor", 0)}
-    assert keys("actor-0@b", "put", "ingress") == {b.traj(0), b.stats("actor", 0)}
-    assert keys("actor-1", "declare_subscriber", "ingress") == {r.ack(1), r.control}
+    rs, bs = r.of_shard(ANY_SHARD), b.of_shard(ANY_SHARD)  # the same, on any replay shard
+    assert keys("actor-0", "put", "ingress") == {r.traj(0), rs.traj(0), r.stats("actor", 0)}
+    assert keys("actor-0@b", "put", "ingress") == {b.traj(0), bs.traj(0), b.stats("actor", 0)}
+    assert keys("actor-1", "declare_subscriber", "ingress") == {r.ack(1), rs.ack(1), r.control}
     assert not keys("actor-0", "declare_queryable", "ingress")
     assert keys("learner", "declare_queryable", "ingress") == {r.params_latest}
-    assert keys("replay", "declare_queryable", "ingress") == {r.sample, r.spec, r.join}
-    assert keys("replay", "put", "ingress") == {r.ack_all, r.stats("replay", 0)}
+    assert keys("replay", "declare_queryable", "ingress") == {r.sample, rs.sample, r.spec,
+                                                               r.join}
+    # every shard and every learner rank under one user each: their stats and tokens any ident
+    assert keys("replay", "put", "ingress") == {r.ack_all, rs.ack_all,
+                                                r.of_role("stats", "replay")}
+    assert keys("learner", "liveliness_token", "ingress") == {r.of_role("alive", "learner")}
     assert keys("link", "put", "ingress") == {r.stats("link", 0)}
     assert keys("monitor", "put", "ingress") == set()
     assert all(key.startswith((r.prefix + "/", b.prefix + "/"))

@@ -145,8 +145,9 @@ def finished(env: dict, job: str) -> bool:
 
 def test_the_batch_script_runs_a_whole_run_and_stops_cleanly_on_scancel(slurm, tmp_path):
     common = {"TPDEB_ENV_ID": "InvertedPendulum-v5", "TPDEB_NUM_ENVS": "2"}
+    # the first job with two replay shards and two learner ranks (tasks of the first node)
     job = submit(slurm, tmp_path, TPDEB_TOTAL_TIMESTEPS="20000", TPDEB_ACTORS_PER_NODE="2",
-                 **common)
+                 TPDEB_REPLAY_SHARDS="2", TPDEB_LEARNERS="2", **common)
     wait_for(lambda: finished(slurm, job), 300, f"end of job {job}")
     out = (tmp_path / f"tpdeb-{job}.out").read_text()
     run_dir = tmp_path / "runs" / f"tpdeb-{job}"
@@ -154,6 +155,9 @@ def test_the_batch_script_runs_a_whole_run_and_stops_cleanly_on_scancel(slurm, t
     assert "learner exited with 0" in out, out + "\n".join(logs.values())
     assert list((run_dir / "checkpoints").glob("final_*.pt"))
     assert "actor 0:" in logs["actors"] and "actor 1:" in logs["actors"]  # ids from the ranks
+    assert "shard 0 of 2" in logs["replay"] and "shard 1 of 2" in logs["replay"]
+    assert "rank 1 of 2" in logs["learner"], logs["learner"]
+    assert (run_dir / "replay-1").is_dir() and (run_dir / "ranks" / "1").is_dir()
     assert "with TLS, user/password" in logs["router"]
     assert "stopped (SIGTERM)" in logs["router"]  # stopped by the script at the end
     mode = (run_dir / "security" / "users.txt").stat().st_mode & 0o777

@@ -22,7 +22,7 @@ from tpdeb.tpdeb_core.replay import PRIORITY_MODES
 from tpdeb.tpdeb_core.schema import STACKED, Fragment, FragmentBatch, array_specs
 
 __all__ = ["Collector", "Fragment", "FragmentBatch", "fragment_priority", "fragment_return",
-           "initial_priority", "stack_fragments"]
+           "initial_priority", "join_batches", "stack_fragments"]
 
 # What the Collector writes at every step: each per-step field but td_abs (computed when the
 # fragment is complete), plus the actor's value estimates, which td_abs needs and nothing ships.
@@ -43,6 +43,20 @@ def stack_fragments(fragments: Sequence[Fragment]) -> FragmentBatch:
         trunc_obs=np.concatenate([np.asarray(f.trunc_obs, np.float32).reshape(-1, obs_dim)
                                   for f in fragments]),
         policy_version=np.array([f.policy_version for f in fragments], np.int64))
+
+
+def join_batches(batches: Sequence[FragmentBatch]) -> FragmentBatch:
+    """Batches side by side (B₁ + B₂ + … fragments, in order): one batch from replay shards."""
+    if len(batches) == 1:
+        return batches[0]
+    offsets = np.cumsum([0] + [b.policy_version.size for b in batches[:-1]])
+    return FragmentBatch(
+        **{name: np.concatenate([getattr(b, name) for b in batches], axis=1) for name in STACKED},
+        trunc_t=np.concatenate([b.trunc_t for b in batches]),
+        trunc_b=np.concatenate([b.trunc_b + offset for b, offset in
+                                zip(batches, offsets.tolist(), strict=True)]).astype(np.int32),
+        trunc_obs=np.concatenate([b.trunc_obs for b in batches]),
+        policy_version=np.concatenate([b.policy_version for b in batches]))
 
 
 def initial_priority(fragment: Fragment, mode: str, kappa: float, gamma: float):

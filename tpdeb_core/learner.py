@@ -175,6 +175,9 @@ class Update:
         # the policy's parameters in the model's list, in the target policy's order
         self.policy_indices = tuple(names.index(f"policy.{n}") for n in target_names)
         self.obs_clip, self.global_log_std, self.device_type = obs_clip, global_log_std, device_type
+        # data-parallel learners: (gradients, metrics) ↦ their average over the group, in place,
+        # between the gradients and the step (the caller's; None alone)
+        self.reduce: Callable[[list[torch.Tensor], torch.Tensor], None] | None = None
 
     @torch.no_grad()
     def __call__(self, state: State, batch: Batch, norm: torch.Tensor) -> torch.Tensor:
@@ -196,6 +199,8 @@ class Update:
             with torch.enable_grad():
                 total, priorities, metrics = self.forward(state, batch, norm)
             grads = list(torch.autograd.grad(total, state.params))
+        if self.reduce is not None:
+            self.reduce(grads, metrics)
         self.apply(state, grads, metrics)
         return priorities
 

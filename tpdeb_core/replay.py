@@ -53,6 +53,7 @@ from tpdeb.tpdeb_core.replay_state import (
     strategy_names,
     upgraded,
 )
+from tpdeb.tpdeb_core.shards import ShardView
 
 # One import for a composition: the replay, its strategies and the algorithms' compositions.
 __all__ = ["COMPOSITIONS", "PRIORITY_MODES", "RETENTIONS", "DualReplay", "LowestPriorityRemover",
@@ -188,14 +189,22 @@ class DualReplay:
 
     # ----------------------------------------------------------------------------- sample
 
-    def sample(self, batch_size: int, beta: float = 1.0) -> ReplaySample:
+    def sample(self, batch_size: int, beta: float = 1.0,
+               num_prioritized: int | None = None) -> ReplaySample:
         """Draw `batch_size` items with replacement: round(ζB) from B_p, the rest from B_u.
 
         When one buffer is empty the other fills the whole batch. B_p's items carry the
-        sampler's importance weights (P / P_min)^(-β); B_u's weigh 1.
+        sampler's importance weights (P / P_min)^(-β); B_u's weigh 1. `num_prioritized`: B_p's
+        rows as the caller splits the batch (a shard's share, `shards.split_batch`) in place of
+        round(ζB), with the same fallback when one buffer is empty.
         """
         batch_size = check_int("batch_size", batch_size, 1)
         beta = check_real("beta", beta, 0.0, 1.0)
+        if num_prioritized is not None:
+            num_prioritized = check_int("num_prioritized", num_prioritized, 0)
+            if num_prioritized > batch_size:
+                raise ValueError(f"num_prioritized={num_prioritized} is more than the batch "
+                                 f"({batch_size})")
         if not self._prioritized and not self._uniform:
             raise ValueError(
                 "cannot sample from an empty DualReplay (both buffers hold 0 items): insert "
@@ -205,7 +214,7 @@ class DualReplay:
             num_prioritized = batch_size
         elif not self._prioritized:
             num_prioritized = 0
-        else:
+        elif num_prioritized is None:
             num_prioritized = round(self._zeta * batch_size)
         draw = self._prioritized.sample(num_prioritized, beta, self._rng)
         uniform_entries = self._uniform.sample(batch_size - num_prioritized, self._rng)
@@ -287,6 +296,18 @@ class DualReplay:
             "priority_max": priority_max,
             "priority_mean": priority_mean,
         }
+
+    def view(self) -> ShardView:
+        """What this replay holds as a shard of a larger one (`shards.ShardView`): B_p's and
+        B_u's item counts, B_p's sampling mass and its P_min's mass."""
+        sampler, items = self.sampler, len(self._prioritized)
+        if not items:
+            mass = min_mass = 0.0
+        elif sampler.has_priorities:
+            mass, min_mass = sampler.total_mass(), sampler.min_mass(self._prioritized.priorities)
+        else:
+            mass, min_mass = float(items), 1.0
+        return ShardView(items, len(self._uniform), mass, min_mass)
 
     def _prioritized_keys(self) -> set[int]:
         """Keys now in B_p (for tests and debugging)."""

@@ -90,7 +90,8 @@ class Draw(NamedTuple):
 
 class Sampler(Protocol):
     """What `PrioritizedBuffer` asks of a sampler (one instance per buffer: it indexes slots).
-    With `has_priorities` it also takes updates: `update_leaves` then `set_many`."""
+    With `has_priorities` it also takes updates (`update_leaves` then `set_many`) and says its
+    `total_mass()` and `min_mass(priorities)` (a shard's view, `shards.ShardView`)."""
 
     name: str  # recorded in a saved state, which only a replay of the same sampler loads
     capacity: int  # B_p's slots
@@ -129,6 +130,10 @@ class _ProportionalSampler:
         """Stratified proportional draw (Schaul et al. 2016): one draw per equal segment of mass."""
         segment = self._mass.total() / count
         return self._mass.find_prefix((np.arange(count) + rng.random(count)) * segment)
+
+    def total_mass(self) -> float:
+        """Σ of the slots' sampling masses (what a batch's B_p rows are drawn in proportion to)."""
+        return self._mass.total()
 
     def _checked_mass(self, mass: float, name: str, priority: Any) -> float:
         if not 0.0 < mass < math.inf:
@@ -194,6 +199,10 @@ class TrajectorySampler(_ProportionalSampler):
         slots = self._stratified(count, rng)
         ratio = priorities.get(slots) / priorities.min()
         return Draw(slots, ratio ** (-self.alpha * beta))
+
+    def min_mass(self, priorities: PriorityIndex) -> float:
+        """P_min's mass, p_min^α: the weights' reference (B_p not empty)."""
+        return priorities.min() ** self.alpha
 
     def load(self, slots: np.ndarray, state: dict[str, Any]) -> None:
         self._mass.set_many(slots, np.asarray(state["slot_mass"], dtype=np.float64))
@@ -306,6 +315,10 @@ class StepSampler(_ProportionalSampler):
         steps = np.minimum((cumulative <= targets[:, None]).sum(axis=1), sizes[rows] - 1)
         step_mass = masses[rows, steps]
         return slots, steps.astype(np.int64), (step_mass / self._min_step_mass.min()) ** (-beta)
+
+    def min_mass(self, priorities: PriorityIndex | None = None) -> float:
+        """P_min's mass: the smallest step mass in B_p (not empty)."""
+        return self._min_step_mass.min()
 
     def state(self, slots: np.ndarray) -> dict[str, Any]:
         return {**super().state(slots),

@@ -159,12 +159,17 @@ class ReplayServiceConfig(NetConfig, SamplingConfig):
     restore: str = "auto"
     """auto: start from the newest complete snapshot in {run_dir}/replay plus the log after it
     (empty when there is none); never: start empty, moving earlier state aside"""
+    shard: int = 0
+    """which replay shard this server is, 0 to replay_shards - 1 (its state in
+    {run_dir}/replay-{shard} when there are several)"""
 
     def __post_init__(self):
         super().__post_init__()
         if not self.listen and not self.connect:
             raise ConfigError("the replay server needs --listen (or --connect to a router)")
         check(self, [
+            (0 <= self.shard < self.replay_shards, "shard",
+             f"must be in [0, replay_shards={self.replay_shards})"),
             (self.restore in ("auto", "never"), "restore", "expected auto or never"),
             (self.snapshot_interval_s >= 0, "snapshot_interval_s", "must be ≥ 0"),
             (self.keep_snapshots >= 1, "keep_snapshots", "must be ≥ 1"),
@@ -181,11 +186,24 @@ class LearnerServiceConfig(NetConfig, LearningConfig):
     """sample requests kept outstanding at the replay server so the learner never waits"""
     request_timeout_s: float = 30.0
     """a sample request unanswered this long is abandoned and asked again"""
+    rank: int = 0
+    """this learner's rank among `learners` (0 publishes, checkpoints and writes metrics)"""
+    group_endpoint: str = "127.0.0.1:29500"
+    """host:port where the learners meet (rank 0 listens: torch.distributed's TCP store, with
+    no TLS or password — keep it on a trusted network)"""
+    group_timeout_s: float = 120.0
+    """seconds a learner waits for the others in an exchange before it fails (and the cluster
+    restarts the group from its last checkpoint)"""
 
     def __post_init__(self):
         super().__post_init__()
+        host, _, port = self.group_endpoint.rpartition(":")
         check(self, [
             (self.requests_in_flight >= 1, "requests_in_flight", "must be ≥ 1"),
+            (0 <= self.rank < self.learners, "rank", f"must be in [0, learners={self.learners})"),
+            (bool(host) and port.isdecimal() and 0 < int(port) < 65536, "group_endpoint",
+             "expected host:port"),
+            (self.group_timeout_s > 0, "group_timeout_s", "must be > 0"),
         ])
 
 

@@ -12,6 +12,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+from tpdeb.protocol.messages import MAX_REPLAY_SHARDS
 from tpdeb.services.config import ConfigError
 from tpdeb.services.device import check_device_setting
 from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
@@ -210,6 +211,10 @@ class ReplaySettings:
     replay_retention: str = "priority"
     """priority: a full prioritized buffer gives up its lowest-priority fragment (TPDEB) | fifo:
     its oldest (a FIFO still sampled by priority, the PPO+PER baseline)"""
+    replay_shards: int = 1
+    """replay servers (shards): actor a writes to shard a mod K, the learner draws each batch
+    from all in proportion to what they hold; each holds 1/K of the capacities above, with
+    its own log, snapshots and rate limiter"""
 
     def __post_init__(self):
         chain_post_init(ReplaySettings, self)
@@ -222,6 +227,8 @@ class ReplaySettings:
             (self.replay_retention in RETENTIONS, "replay_retention",
              f"must be one of {', '.join(RETENTIONS)}"),
             (self.learning_starts_fragments >= 1, "learning_starts_fragments", "must be ≥ 1"),
+            (1 <= self.replay_shards <= MAX_REPLAY_SHARDS, "replay_shards",
+             f"must be in [1, {MAX_REPLAY_SHARDS}]"),
             (self.max_replay_ratio == 0.0 or self.max_replay_ratio >= self.replay_ratio,
              "max_replay_ratio", f"must be 0 (a fixed ratio) or ≥ replay_ratio="
              f"{self.replay_ratio} (the upper end of the band)"),
@@ -268,6 +275,11 @@ class LearnerSettings:
     """auto: continue from the run dir's newest loadable checkpoint (a fresh start if there is
     none) | never: start fresh (earlier checkpoints are moved aside) | PATH: continue from that
     checkpoint file"""
+    learners: int = 1
+    """data-parallel learner processes (torch.distributed: gloo on CPUs, NCCL between GPUs):
+    each samples batch_fragments of its own per update and the gradients are averaged, so an
+    update learns from learners × batch_fragments fragments; rank 0 publishes the parameters
+    and writes checkpoints and metrics"""
 
     def __post_init__(self):
         chain_post_init(LearnerSettings, self)
@@ -280,6 +292,7 @@ class LearnerSettings:
             (self.checkpoint_interval_s >= 0, "checkpoint_interval_s",
              "must be ≥ 0 (0 turns periodic checkpoints off)"),
             (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
+            (1 <= self.learners <= 1024, "learners", "must be in [1, 1024]"),
             (bool(self.resume.strip()), "resume", "use auto, never or the path of a checkpoint"),
             (check_device_setting(self.device) is None, "device",
              check_device_setting(self.device) or ""),
@@ -332,6 +345,18 @@ class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig)
             )
         except ValueError as exc:
             raise ConfigError(f"replay ratio settings: {exc}") from None
+
+    def shard_part(self, shard: int) -> SamplingConfig:
+        """Replay shard `shard`'s settings (`replay_shards` > 1): 1/K of the capacities and of
+        the fragments before sampling starts (rounded up), its own sampling seed. K = 1: these."""
+        k = self.replay_shards
+        if k == 1:
+            return self
+        return dataclasses.replace(
+            self, prioritized_capacity=-(-self.prioritized_capacity // k),
+            uniform_capacity_steps=max(self.fragment_len, -(-self.uniform_capacity_steps // k)),
+            learning_starts_fragments=-(-self.learning_starts_fragments // k),
+            seed=(self.seed + 7919 * shard) % 2**31)
 
     def make_replay(self) -> DualReplay:
         return DualReplay(

@@ -64,6 +64,7 @@ class Plan:
     restarts: RestartSettings = field(default_factory=RestartSettings)
     security: ClusterSecurity = field(default_factory=ClusterSecurity)
     hang_intervals: float = 30.0  # stats silent this many of a service's intervals: hung
+    group_endpoint: str = ""  # where data-parallel learners meet (learners > 1)
 
 
 def free_port() -> int:
@@ -123,13 +124,20 @@ def make_plan(args: argparse.Namespace) -> Plan:
     train = train_settings(data.get("train", {}), args, f"{path} [train]")
     if train.eval_every() == (0, 0.0):  # eval_interval = 0: no evaluation, no evaluator
         services.pop("evaluator", None)
+    services["replay"].replicas = train.replay_shards  # one replay server per shard
+    services["learner"].replicas = train.learners  # one process per rank
+    if train.replay_shards > services["actor"].replicas:
+        raise ConfigError(f"replay_shards={train.replay_shards} with {services['actor'].replicas} "
+                          "actor(s): actor a writes to shard a mod replay_shards, so a shard "
+                          "beyond the actors would stay empty; use at most one per actor")
     return Plan(run_id=args.run_id or cluster.get("run_id", "local"), endpoint=endpoint,
                 stop_timeout_s=float(cluster.get("stop_timeout_s", 20)),
                 start_timeout_s=float(cluster.get("start_timeout_s", 120)),
                 train=train, services=start_order(services), source=str(path), link=link,
                 link_endpoint=link_endpoint,
                 restarts=RestartSettings.from_section(cluster, path), security=security,
-                hang_intervals=hang_intervals(cluster, path))
+                hang_intervals=hang_intervals(cluster, path),
+                group_endpoint=f"127.0.0.1:{free_port()}" if train.learners > 1 else "")
 
 
 def hang_intervals(cluster: dict, path) -> float:
@@ -168,7 +176,8 @@ def service_specs(sections: dict, path: Path, actors: int | None) -> dict[str, S
                 spec.role != "actor" and spec.replicas != 1):
             raise ConfigError(f"services.{spec.role}.replicas={spec.replicas}: the router, the "
                               "replay, the learner and the evaluator run once, actors at least "
-                              "once")
+                              "once (replay_shards and learners set how many replays and "
+                              "learners)")
     return services
 
 

@@ -141,13 +141,14 @@ class Display:
         highest ranks go first (see `fit`)."""
         with self.lock:
             learner = self.latest.get(("learner", "0"), {})
-            replay = self.latest.get(("replay", "0"), {})
+            replays = [v for (role, _), v in self.latest.items() if role == "replay"]  # shards
             link = self.latest.get(("link", "0"))
         if not learner:
             return [("starting…", 0), (health, 1)]
         step, total = int(learner.get("global_step", 0)), int(learner.get("total_timesteps", 0))
         pct = f" ({100 * step / total:.0f}%)" if total else ""
-        fill = replay.get("prioritized_items", 0), replay.get("uniform_steps", 0)
+        fill = (sum(int(r.get("prioritized_items", 0)) for r in replays),
+                sum(int(r.get("uniform_steps", 0)) for r in replays))
         parts = [(f"{step:,}/{total:,} steps{pct}", 0),
                  (f"{learner.get('sps', 0):,.0f} SPS", 2),
                  (f"return {learner.get('mean_return', math.nan):,.1f}", 1),

@@ -59,7 +59,9 @@ def _grants(keys: Keys, role: str) -> list[tuple[str, str, str]]:
         return grants(keys, "actor", int(actor.group(1)))
     if role == "actor":  # the pool: what any actor may do, under one user
         return grants(keys, "actor", ANY)
-    if role in ("replay", "learner", "monitor", "link", "evaluator"):
+    if role in ("replay", "learner"):  # a pool too: every replay shard, every learner rank
+        return grants(keys, role, ANY)
+    if role in ("monitor", "link", "evaluator"):
         return grants(keys, role, 0)
     raise ConfigError(f"user {role!r} is not a TPDEB role: users are {', '.join(ROLES)} "
                       "(or ROLE@RUN_ID for another run on this router)")

@@ -24,7 +24,8 @@ def run_spec(config: SamplingConfig, obs_dim: int, act_dim: int, low, high) -> R
         init_log_std=config.init_log_std, policy_std=config.policy_std,
         priority_mode=config.priority_mode,
         priority_kappa=config.priority_kappa, action_low=np.asarray(low, np.float32),
-        action_high=np.asarray(high, np.float32), env_kwargs=config.env_kwargs)
+        action_high=np.asarray(high, np.float32), env_kwargs=config.env_kwargs,
+        replay_shards=config.replay_shards)
 
 
 def spec_mismatch(served: RunSpec, env_id: str, obs_dim: int, act_dim: int,
