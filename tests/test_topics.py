@@ -6,6 +6,7 @@ from pathlib import Path
 import pytest
 
 from tpdeb.protocol import Keys
+from tpdeb.protocol.keys import ANY_SHARD
 from tpdeb.protocol.topics import BY_NAME, ROLES, TOPICS, grants, table_markdown
 from tpdeb.services.net.session import qos
 
@@ -27,7 +28,7 @@ def test_every_topic_names_a_key_roles_and_its_messages():
 
 
 def test_an_actor_may_put_only_its_own_fragments_and_hear_only_its_own_acks():
-    shards = KEYS.of_shard("*")  # the same on any replay shard
+    shards = KEYS.of_shard(ANY_SHARD)  # the same on any replay shard
     assert allowed("actor", 3, "put", "ingress") == {KEYS.traj(3), shards.traj(3),
                                                      KEYS.stats("actor", 3)}
     assert allowed("actor", 3, "declare_subscriber", "ingress") == {KEYS.ack(3), shards.ack(3),
