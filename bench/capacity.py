@@ -14,8 +14,9 @@ measured on this machine with synthetic actors instead of environments.
    (`persist`, acknowledged once on disk) and without. CPU per second of the replay and router.
 2. Router forwarding ceiling: the same synthetic senders publishing to a counting subscriber
    through the router alone (no replay, no acks): fragments/s forwarded.
-3. Learner update ceiling per network size (64×64, 256×256): the compiled update's updates/s at
-   one torch thread, and the env steps/s that feeds at the preset's replay ratio.
+3. Learner update ceiling per network size (64×64, 256×256) and batch (8, 16, 32 fragments):
+   the compiled update's updates/s at one torch thread, the env steps/s that feeds at the
+   preset's replay ratio, and the batch growth would keep (`max_batch_fragments`).
 4. One actor's acting rate per task (4 envs, its policy in numpy, one core).
 
 Prints the figures and the plan (actors of each task one replay and one learner can feed);
@@ -250,18 +251,34 @@ def learner_ceilings(args) -> list[dict]:
 
     rows = []
     for hidden in SIZES:
-        config = preset_config(args.env_id, 4, args.seed)
-        config.hidden_sizes = hidden
-        spec, fragments, batches = sample_batches(config, count=16)
-        rate = updates_per_s(spec, config, fragments, batches, "cpu", 1, args.seconds)
-        feeds = rate * config.batch_steps / config.replay_ratio
-        print(f"[capacity] learner {'×'.join(map(str, hidden))}: {rate:,.0f} updates/s, "
-              f"feeds {feeds:,.0f} env steps/s at replay ratio {config.replay_ratio:g}",
-              flush=True)
-        rows.append({"hidden": "×".join(map(str, hidden)), "updates_per_s": rate,
-                     "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
-                     "feeds_env_steps_per_s": feeds})
+        for batch in args.batches:
+            config = preset_config(args.env_id, 4, args.seed)
+            config.hidden_sizes, config.batch_fragments = hidden, batch
+            spec, fragments, batches = sample_batches(config, count=16)
+            rate = updates_per_s(spec, config, fragments, batches, "cpu", 1, args.seconds)
+            feeds = rate * config.batch_steps / config.replay_ratio
+            print(f"[capacity] learner {'×'.join(map(str, hidden))}, batch {batch}: {rate:,.0f} "
+                  f"updates/s, feeds {feeds:,.0f} env steps/s at replay ratio "
+                  f"{config.replay_ratio:g}", flush=True)
+            rows.append({"hidden": "×".join(map(str, hidden)), "batch_fragments": batch,
+                         "updates_per_s": rate, "batch_steps": config.batch_steps,
+                         "replay_ratio": config.replay_ratio, "feeds_env_steps_per_s": feeds})
     return rows
+
+
+def grown(rows: list[dict], hidden: str) -> dict:
+    """The learner row batch growth would settle on for a network (tpdeb_core.batch_growth:
+    from the smallest batch, each doubling kept while an update costs ≤ 1.5× the smaller's)."""
+    from tpdeb.tpdeb_core.batch_growth import BatchGrowth
+
+    sizes = sorted((r for r in rows if r["hidden"] == hidden), key=lambda r: r["batch_fragments"])
+    kept = sizes[0]
+    for row in sizes[1:]:
+        if row["batch_fragments"] != 2 * kept["batch_fragments"] or (
+                kept["updates_per_s"] / row["updates_per_s"] > BatchGrowth.cost):
+            break
+        kept = row
+    return kept
 
 
 def acting_rates(args) -> dict[str, dict]:
@@ -284,14 +301,21 @@ def plan_table(result: dict) -> str:
     """Actors of each task that one replay (WAL on, the best sender count) and one learner
     (the task's network size) can feed."""
     replay = max((r["env_steps_per_s"] for r in result["ingest"] if r["persist"]), default=0)
-    updates = {r["hidden"]: r["updates_per_s"] * r["batch_steps"] for r in result["learner"]}
+    rows = [dict(r, batch_fragments=r.get("batch_fragments", 8)) for r in result["learner"]]
+    steps = {r["hidden"]: r["updates_per_s"] * r["batch_steps"] for r in rows
+             if r["batch_fragments"] == 8}  # the presets' batch
     out = ["| task | one actor (env steps/s) | actors one replay can feed | actors one learner "
-           "can feed (its network, its replay ratio) |", "|---|---|---|---|"]
+           "can feed (its network, its replay ratio) | with batch growth (the batch it keeps) |",
+           "|---|---|---|---|---|"]
     for env_id, task in result["acting"].items():
-        rate = task["env_steps_per_s"]
-        feeds = updates.get(task["hidden"], float("nan")) / task["replay_ratio"]
+        rate, ratio = task["env_steps_per_s"], task["replay_ratio"]
+        feeds = steps.get(task["hidden"], float("nan")) / ratio
+        kept = grown(rows, task["hidden"]) if any(r["hidden"] == task["hidden"] for r in rows) \
+            else None
+        growth = (f"{kept['updates_per_s'] * kept['batch_steps'] / ratio / rate:,.1f} "
+                  f"({kept['batch_fragments']})" if kept else "—")
         out.append(f"| {env_id} | {rate:,.0f} | {replay / rate:,.1f} | {feeds / rate:,.1f} "
-                   f"({task['hidden']}, {task['replay_ratio']:g}) |")
+                   f"({task['hidden']}, {ratio:g}) | {growth} |")
     return "\n".join(out)
 
 
@@ -308,8 +332,11 @@ def combine(results: list[dict]) -> dict:
         "runs": [best(r, "ingest", "env_steps_per_s", persist=persist) for r in results]}
         for persist in (True, False)]
     forwarding = [best(r, "forwarding", "forwarded_per_s") for r in results]
-    learner = [dict(row, updates_per_s=median(
-        x["updates_per_s"] for r in results for x in r["learner"] if x["hidden"] == row["hidden"]))
+    def size(row: dict) -> tuple:
+        return row["hidden"], row.get("batch_fragments", 8)
+
+    learner = [dict(row, batch_fragments=size(row)[1], updates_per_s=median(
+        x["updates_per_s"] for r in results for x in r["learner"] if size(x) == size(row)))
         for row in results[0]["learner"]]
     acting = {env_id: dict(task, env_steps_per_s=median(
         r["acting"][env_id]["env_steps_per_s"] for r in results))
@@ -328,7 +355,8 @@ def report(paths: list[str]) -> None:
     print(f"router forwarding: median {fwd['per_s']:,.0f} fragments/s (runs: "
           f"{', '.join(f'{x:,.0f}' for x in fwd['runs'])})")
     for row in combined["learner"]:
-        print(f"learner {row['hidden']}: median {row['updates_per_s']:,.0f} updates/s")
+        print(f"learner {row['hidden']}, batch {row['batch_fragments']}: median "
+              f"{row['updates_per_s']:,.0f} updates/s")
     print()
     print(plan_table(combined))
 
@@ -343,6 +371,9 @@ def main() -> None:
                         help="fragments in flight per synthetic actor (an actor's 2 × 4 envs)")
     parser.add_argument("--startup-s", type=float, default=4.0)
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--batches", type=int, nargs="+", default=[8, 16, 32],
+                        help="learner batch sizes (fragments) timed per network: what batch "
+                        "growth (max_batch_fragments) would pick from")
     parser.add_argument("--report", nargs="+", metavar="RESULTS",
                         help="no runs: medians over these results.json files and the plan")
     # the children's roles

@@ -93,16 +93,19 @@ def services_below(root: int) -> dict[tuple[int, str], int]:
 
 
 def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int = 1,
-                env_id: str | None = None, out: Path = OUT) -> dict:
+                env_id: str | None = None, out: Path = OUT, settings: tuple = ()) -> dict:
+    """One cluster run; `settings`: more KEY=VALUE for --set (batch growth, a wider batch)."""
     env_id = env_id or args.env_id
     name = f"{env_id}-{actors}actors-{device}" + (f"-{shards}shards-{learners}learners"
                                                   if (shards, learners) != (1, 1) else "")
+    name += "".join(f"-{item.replace('=', '')}" for item in settings)
     run_dir = out / "runs" / name
     cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id,
            "--total-timesteps", str(10**9), "--train-for-seconds", str(args.cluster_seconds),
            "--actors", str(actors), "--num-envs", "4", "--seed", str(args.seed),
            "--run-dir", str(run_dir), "--set", f"device={device}",
-           "--set", f"replay_shards={shards}", "--set", f"learners={learners}"]
+           "--set", f"replay_shards={shards}", "--set", f"learners={learners}",
+           *(arg for item in settings for arg in ("--set", item))]
     subprocess.run(["rm", "-rf", str(run_dir)], check=False)
     run_dir.parent.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
@@ -124,7 +127,8 @@ def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int =
     end = json.loads(end_file.read_text()) if end_file.is_file() else {}
     train_s = end.get("train_elapsed_s") or float("nan")
     row = {"env_id": env_id, "actors": actors, "replay_shards": shards, "learners": learners,
-           "device": device, "exit_code": code, "wall_s": round(wall, 1),
+           "settings": list(settings), "device": device, "exit_code": code,
+           "wall_s": round(wall, 1),
            "env_steps_per_s": end.get("global_step", 0) / train_s,
            "updates_per_s": end.get("updates", 0) / train_s,
            "cpu_per_s": {k: round(v / wall, 2) for k, v in by_role(sampler.last).items()}}

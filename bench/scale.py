@@ -1,6 +1,6 @@
 """The scaling curve: env steps/s and CPU per role as actors, replay shards and learners grow.
 
-    python bench/scale.py                    # ~10 minutes, on a machine with a GPU and 16 cores
+    python bench/scale.py                    # ~9 minutes, on a machine with a GPU and 16 cores
     python bench/scale.py --device cpu --cluster-seconds 15 --actors 1 2 --wide 2 \\
         --envs HalfCheetah-v5                # a smoke run on two cores
 
@@ -10,6 +10,9 @@ fixed learning settings; the learner on `--device`), trained for `--cluster-seco
 
 - HalfCheetah-v5: 1, 2, 4, 8 and 14 actors × 4 envs with one replay and one learner, then
   `--wide` actors with 2 replay shards and 2 learner ranks;
+- then `--wide` actors with one replay and one learner twice more: its batch doubled
+  (`batch_fragments=16`, what two ranks learn from per update) and batch growth
+  (`max_batch_fragments=64`: the learner doubles its batch while the device has headroom);
 - every other task of `--envs` (Ant-v5): `--wide` actors, one replay and one learner, then 2
   and 2.
 
@@ -35,26 +38,35 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "scale"
 
 
-def plan(args) -> list[tuple[str, int, int, int]]:
-    """(task, actors, replay shards, learners) of every run, in order."""
+WIDER = ("batch_fragments=16",)  # one learner, the batch two ranks learn from
+GROWN = ("max_batch_fragments=64",)  # batch growth
+
+
+def plan(args) -> list[tuple[str, int, int, int, tuple]]:
+    """(task, actors, replay shards, learners, more settings) of every run, in order."""
     first, *others = args.envs
-    runs = [(first, n, 1, 1) for n in args.actors] + [(first, args.wide, 2, 2)]
+    runs = [(first, n, 1, 1, ()) for n in args.actors] + [
+        (first, args.wide, 2, 2, ()), (first, args.wide, 1, 1, WIDER),
+        (first, args.wide, 1, 1, GROWN)]
     for env_id in others:
-        runs += [(env_id, args.wide, 1, 1), (env_id, args.wide, 2, 2)]
+        runs += [(env_id, args.wide, 1, 1, ()), (env_id, args.wide, 2, 2, ())]
     return runs
 
 
 def table(rows: list[dict]) -> str:
     base = {r["env_id"]: r["env_steps_per_s"] for r in rows
-            if (r["actors"], r["replay_shards"], r["learners"]) == (1, 1, 1)}
-    out = ["| task | actors × 4 envs | replay shards | learners | env steps/s | of linear | "
-           "updates/s | CPU/s replay | router | learner | actors |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+            if (r["actors"], r["replay_shards"], r["learners"]) == (1, 1, 1)
+            and not r.get("settings")}
+    out = ["| task | actors × 4 envs | replay shards | learners | settings | env steps/s | "
+           "of linear | updates/s | CPU/s replay | router | learner | actors |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         one = base.get(r["env_id"])
         linear = f"{r['env_steps_per_s'] / (one * r['actors']):.2f}" if one else "—"
+        more = ", ".join(r.get("settings", [])) or "preset"
         out.append(f"| {r['env_id']} | {r['actors']} | {r['replay_shards']} | {r['learners']} | "
-                   f"{r['env_steps_per_s']:,.0f} | {linear} | {r['updates_per_s']:,.0f} | "
+                   f"{more} | {r['env_steps_per_s']:,.0f} | {linear} | "
+                   f"{r['updates_per_s']:,.0f} | "
                    f"{cpu_cells(r['cpu_per_s'])} |")
     return "\n".join(out)
 
@@ -69,7 +81,7 @@ def main() -> None:
                         help="the first task's actor counts (one replay, one learner)")
     parser.add_argument("--wide", type=int, default=14,
                         help="actors of the runs with 2 replay shards and 2 learner ranks")
-    parser.add_argument("--cluster-seconds", type=float, default=40.0,
+    parser.add_argument("--cluster-seconds", type=float, default=30.0,
                         help="training seconds of each cluster run")
     parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
@@ -81,9 +93,9 @@ def main() -> None:
     result = {"machine": machine(device), "args": vars(args), "runs": []}
     print(f"[scale] {result['machine']}; {len(plan(args))} runs of "
           f"{args.cluster_seconds:g} s", flush=True)
-    for env_id, actors, shards, learners in plan(args):
+    for env_id, actors, shards, learners, settings in plan(args):
         result["runs"].append(cluster_run(args, actors, args.device, shards, learners, env_id,
-                                          out=OUT))
+                                          out=OUT, settings=settings))
         provenance.stamp(result, record)
         (OUT / "results.json").write_text(json.dumps(result, indent=1))
     result["table_markdown"] = table(result["runs"])

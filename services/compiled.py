@@ -85,6 +85,13 @@ class BackgroundCompile:
         self.seconds = time.perf_counter() - started
         self.done.set()
 
+    def reset(self) -> None:
+        """Compile again on the next `start` (a new batch shape: batch growth). The thread
+        has ended: the learner installed what it made."""
+        self.thread = None
+        self.done.clear()
+        self.error = None
+
     def ready(self) -> bool:
         return self.done.is_set()
 

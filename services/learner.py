@@ -76,6 +76,7 @@ from tpdeb.services.store.checkpoint import (
 )
 from tpdeb.services.store.diskio import DiskGuard, write_atomic
 from tpdeb.services.store.metrics import MetricsWriter, hyperparameter_table
+from tpdeb.tpdeb_core.batch_growth import BatchGrowth
 from tpdeb.tpdeb_core.learner import Batch, Learner, place
 from tpdeb.tpdeb_core.model import state_arrays
 
@@ -153,6 +154,10 @@ class LearnerService:
                          if self.config.compile == "auto" and self.group is None else None)
         self.compiled = False
         self.pending: tuple | None = None  # a batch's priorities not yet sent
+        cfg = self.config
+        self.batch_fragments = cfg.batch_fragments  # what the fetchers ask for
+        self.growth = (BatchGrowth(cfg.batch_fragments, cfg.largest_batch)
+                       if cfg.largest_batch > cfg.batch_fragments else None)
 
     def _writers(self) -> None:
         """The run dir's writers, each of which a full disk costs writes, not the run."""
@@ -379,7 +384,7 @@ class LearnerService:
         rate-limited) or its reply was bad."""
         if self.shard_set is not None:
             return self.fetch_sharded(request_id)
-        request = SampleRequest(request_id=request_id, batch_size=self.config.batch_fragments,
+        request = SampleRequest(request_id=request_id, batch_size=self.batch_fragments,
                                 beta=self.beta())
         got = self._answer(self._ask(self.keys.sample, request))
         if got is None:
@@ -411,7 +416,7 @@ class LearnerService:
         shard that was not ready (or did not answer) asked again of those that were. None when
         the batch could not be filled (what its replies carried of the normalisers' moments
         is kept for the next one)."""
-        shards, beta, size = self.shard_set, self.beta(), self.config.batch_fragments
+        shards, beta, size = self.shard_set, self.beta(), self.batch_fragments
         counts, ready = shards.plan(size), []
         for _ in range(2):
             asked = {shard: self._ask(self.shard_keys[shard].sample, SampleRequest(
@@ -468,12 +473,15 @@ class LearnerService:
                 batch = self.group_batch()
                 if batch is None:
                     break
-            self.wait_s += time.perf_counter() - waited
+            got = time.perf_counter()
+            self.wait_s += got - waited
             if batch is not None:
                 self.train_on(*batch)
             self.serve_params()
             self.drain_stats()
             now = self.report()
+            if batch is not None and self.growth is not None:
+                self.grow(busy_s=time.perf_counter() - got, waited_s=got - waited)
             if (cfg.checkpoint_interval_s and now - last_checkpoint >= cfg.checkpoint_interval_s
                     and self.rank == 0):
                 last_checkpoint = now
@@ -538,7 +546,8 @@ class LearnerService:
         priorities = self.learner.update(placed, norm)
         self.send_priorities((batch.keys, batch.from_prioritized, priorities))
         self.update_s += time.perf_counter() - started
-        if self.compiler is not None and not self.compiled:
+        if (self.compiler is not None and not self.compiled
+                and len(batch.keys) == self.batch_fragments):  # (the shape from here on)
             self.prepare_compiled(placed, norm)
         if self.learner.updates % cfg.params_publish_interval == 0:
             self.publish_params()
@@ -599,7 +608,29 @@ class LearnerService:
             compiler.start(placed, norm)
         elif compiler.ready():
             self.compiled = True
-            compiler.install()
+            if not compiler.install():
+                self.compiler = None  # eager from here on, whatever the batch
+
+    def grow(self, busy_s: float, waited_s: float) -> None:
+        """Batch growth: one update's loop time to the rule (once the update runs compiled,
+        where it compiles), and the fetchers asked for the size it picks."""
+        if self.compiler is not None and not self.compiled:
+            return
+        size = self.growth.observe(busy_s, waited_s)
+        if size is None:
+            return
+        old, seconds = self.growth.last
+        if size < old:
+            why = f"{seconds / self.growth.history[-1][1]:.2f}× one on {size}: kept at {size}"
+        else:
+            why = "the learner is the limit: the larger one is timed next"
+        log.info(f"batch {old} → {size} fragments (an update on {old}: {1e3 * seconds:.1f} ms; "
+                 f"{why})")
+        self.batch_fragments = size
+        if self.compiler is not None:  # compiled again for the new shape, eager meanwhile
+            self.learner.use(self.learner.rules)
+            self.compiler.reset()
+            self.compiled = False
 
     def wait_for_compile(self) -> None:
         """A compile still running when the run ends is let finish: the interpreter must not
@@ -705,6 +736,7 @@ class LearnerService:
             values.update(self.learner.read_metrics())  # the device's sums, read once
             values.update({k: v / self.count for k, v in self.sums.items()})
             values["perf/update_ms"] = 1e3 * self.update_s / self.count
+            values["perf/batch_fragments"] = self.batch_fragments
         if self.checkpoints_written:
             values["perf/checkpoint_ms"] = 1e3 * self.checkpoint_s / self.checkpoints_written
         busy = self.update_s + self.wait_s

@@ -518,13 +518,14 @@ class ReplayServer:
             query.drop()
 
     def _serve_waiting(self) -> None:
-        batch_steps = self.config.batch_steps
+        largest = self.config.largest_batch
         while self.waiting:
             since, query, request = self.waiting[0]
             steps = request.batch_size * self.spec.fragment_len
-            if steps > batch_steps * 4:
-                self._reply(query, self._not_ready(request, f"batch of {request.batch_size} "
-                                                   "fragments is larger than this run allows"))
+            if request.batch_size > largest:
+                self._reply(query, self._not_ready(request, f"a batch of {request.batch_size} "
+                                                   f"fragments is more than this run's largest "
+                                                   f"({largest}: max_batch_fragments)"))
             elif self.limiter.can_sample(steps) and len(self.replay):
                 self._reply(query, self._sample(request, steps))
             elif time.monotonic() - since > self.config.sample_wait_s:

@@ -55,6 +55,10 @@ class SerialRunner:
             raise ConfigError(f"replay_shards={config.replay_shards}: one process has one "
                               "replay; shards are for a cluster (tpdeb-cluster --set "
                               "replay_shards=K)")
+        if config.max_batch_fragments > config.batch_fragments:
+            raise ConfigError(f"max_batch_fragments={config.max_batch_fragments}: batch growth "
+                              "follows a learner that is the limit of a cluster; one process "
+                              "takes turns (tpdeb-cluster --set max_batch_fragments=N)")
         self.config = config
         torch.set_num_threads(config.torch_threads)
         self.run_dir = config.default_run_dir()

@@ -30,7 +30,20 @@ def test_the_plan_takes_medians_of_each_runs_best_sender_count():
     assert combined["acting"]["HalfCheetah-v5"]["env_steps_per_s"] == 5e3
     row = capacity.plan_table(combined).splitlines()[-1]
     # one replay: 88,000 / 5,000 = 17.6 actors; one learner: 220 × 512 / 16 / 5,000 = 1.4
-    assert row == "| HalfCheetah-v5 | 5,000 | 17.6 | 1.4 (64×64, 16) |"
+    assert row == "| HalfCheetah-v5 | 5,000 | 17.6 | 1.4 (64×64, 16) | 1.4 (8) |"
+
+
+def test_the_plan_says_which_batch_growth_would_keep_and_what_it_feeds():
+    result = run([88e3], 90e3, 9e3, 200, 5e3)
+    result["learner"] = [  # 16 costs 1.33× an update on 8 (kept), 32 2.1× one on 16 (not)
+        {"hidden": "64×64", "batch_fragments": b, "updates_per_s": u, "batch_steps": 64 * b}
+        for b, u in ((8, 200.0), (16, 150.0), (32, 70.0))]
+    assert capacity.grown(result["learner"], "64×64")["batch_fragments"] == 16
+    combined = capacity.combine([result])
+    assert [r["updates_per_s"] for r in combined["learner"]] == [200.0, 150.0, 70.0]
+    row = capacity.plan_table(combined).splitlines()[-1]
+    # batch 8: 200 × 512 / 16 / 5,000 = 1.3 actors; batch 16: 150 × 1,024 / 16 / 5,000 = 1.9
+    assert row == "| HalfCheetah-v5 | 5,000 | 17.6 | 1.3 (64×64, 16) | 1.9 (16) |"
 
 
 def test_services_are_named_from_their_command_lines():

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import os
 import signal
+import statistics
 import threading
 import time
 
@@ -63,9 +64,9 @@ class AckLog:
         return first
 
 
-def stored_state(run_dir, spec_env=ENV):
+def stored_state(run_dir, replay_dir="replay"):
     """The replay's final state as its next restart would load it."""
-    state, records = ReplayPersistence(run_dir / "replay").load(
+    state, records = ReplayPersistence(run_dir / replay_dir).load(
         lambda payload: decode(payload, Trajectory))
     assert state is not None, "no complete snapshot in the run dir"
     assert list(records) == [], "a clean stop leaves nothing to replay from the log"
@@ -175,11 +176,12 @@ class StatsLog:
                     if r == role and name in v and (ident is None or i == ident)]
 
     def wait(self, role: str, name: str, until, timeout_s: float = 120,
-             since: float = 0.0) -> float:
+             since: float = 0.0, ident: str | None = None) -> float:
         """When the first stats after `since` satisfying `until` arrived."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
-            hits = [t for t, value in self.series(role, name) if t > since and until(value)]
+            hits = [t for t, value in self.series(role, name, ident)
+                    if t > since and until(value)]
             if hits:
                 return hits[0]
             time.sleep(0.2)
@@ -259,14 +261,75 @@ def test_cluster_survives_kill9_of_an_actor_the_learner_the_replay_and_the_route
     out = procs.output(cluster)
     for name in ("actor-0", "learner", "replay", "router"):
         assert f"{name} exited with code -9; restarting" in out, out[-3000:]
-    state = stored_state(run_dir)
-    for (actor, incarnation, seq) in acked_before:
-        low, above = state["ledgers"][actor]["windows"][incarnation]
-        assert seq < low or seq in above, f"acknowledged fragment {actor}/{seq} was lost"
-    inserted = state["replay"]["counters"]["inserted"]
-    assert sum(ledger["ingested"] for ledger in state["ledgers"].values()) == inserted
+    assert_all_present(stored_state(run_dir), acked_before)
     print("recovery after kill -9 (s): " + ", ".join(f"{k} {v:.1f}" for k, v in recovery.items())
           + f"; {len(acked_before)} acknowledged fragments before the replay kill, all present")
     figures.keep("cluster-kill9", {"recovery_s": {k: round(v, 2) for k, v in recovery.items()},
                                    "acknowledged_before_replay_kill": len(acked_before),
                                    "lost": 0, "versions_monotone": True})
+
+
+def assert_all_present(state, acked) -> None:
+    """Every acknowledged (actor, incarnation, seq) is in the replay's ledgers, and every
+    fragment ingested once."""
+    for (actor, incarnation, seq) in acked:
+        low, above = state["ledgers"][actor]["windows"][incarnation]
+        assert seq < low or seq in above, f"acknowledged fragment {actor}/{seq} was lost"
+    inserted = state["replay"]["counters"]["inserted"]
+    assert sum(ledger["ingested"] for ledger in state["ledgers"].values()) == inserted
+
+
+@pytest.mark.slow
+def test_two_shards_and_two_ranks_learn_through_kill9_of_a_shard_and_a_rank(procs, tmp_path):
+    """Each actor writes to its own shard and each learner rank samples from both; a shard
+    killed with SIGKILL comes back with everything it acknowledged, a killed rank takes the
+    group back to rank 0's checkpoint, and the run still learns InvertedPendulum."""
+    run_dir = tmp_path / "run"
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    cluster_file = tmp_path / "cluster.toml"
+    cluster_file.write_text(CLUSTER_FILE.format(endpoint=endpoint, env=ENV, steps=100000)
+                            .replace("[train.actor]", "[train.replay]\nreplay_shards = 2\n\n"
+                                     "[train.learner]\nlearners = 2\n\n[train.actor]")
+                            .replace("total_timesteps = 100000",
+                                     "total_timesteps = 100000\nseed = 1"))
+    cluster = procs.spawn("cluster", "--cluster-file", str(cluster_file), "--run-dir", str(run_dir))
+    procs.wait_for_line(cluster, "[learner-0] tpdeb-learner: run", timeout_s=120)
+    session = open_session("client", [], [endpoint], connect_timeout_s=30)
+    try:
+        keys = Keys("faults")
+        acks = [AckLog(session, keys.of_shard(shard)) for shard in (0, 1)]
+        stats = StatsLog(session, keys)
+        # shard 1 (actor 1's): restores everything it acknowledged, its acks resume
+        stats.wait("replay", "snapshots_written", lambda v: v >= 1, ident="1")
+        os.kill(service_pid(run_dir, "replay-1"), signal.SIGKILL)
+        killed = time.monotonic()
+        acked_before = acks[1].snapshot()
+        assert acked_before and all(actor == 1 for actor, _, _ in acked_before)
+        acks[1].wait_after(killed + 0.05, "shard 1 restarted")
+        # rank 1: the group restarts from rank 0's checkpoint and trains on
+        time.sleep(3)  # past a periodic checkpoint
+        before = max(v for _, v in stats.series("learner", "param_version"))
+        os.kill(service_pid(run_dir, "learner-1"), signal.SIGKILL)
+        killed = time.monotonic()
+        stats.wait("learner", "param_version", lambda v: v > before, since=killed + 0.5)
+        assert cluster.wait(400) == 0, procs.output(cluster)[-3000:]
+        versions = [v for _, v in stats.series("learner", "param_version")]
+        assert non_decreasing(versions), "a parameter version went back"
+    finally:
+        session.close()
+    out = procs.output(cluster)
+    assert "replay-1 exited with code -9; restarting" in out, out[-3000:]
+    assert "learner-1 exited with code -9" in out, out[-3000:]
+    assert_all_present(stored_state(run_dir, "replay-1"), acked_before)
+    for shard in (0, 1):  # each shard's own state, its ledgers its own actor's
+        state = stored_state(run_dir, f"replay-{shard}")
+        assert set(state["ledgers"]) == {shard}, state["ledgers"].keys()
+        assert_all_present(state, acks[shard].snapshot())
+    rows = read_metrics(run_dir / "metrics.jsonl")
+    returns = [r["charts/episodic_return"] for r in rows if "charts/episodic_return" in r]
+    assert statistics.mean(returns[-20:]) >= 800, returns[-20:]
+    assert max(r["global_step"] for r in rows) >= 100000
+    logs = {p.name for p in (run_dir / "logs").iterdir()}
+    assert {"replay-0.log", "replay-1.log", "learner-0.log", "learner-1.log"} <= logs, logs
+    assert list((run_dir / "checkpoints").glob("final_*.pt"))  # rank 0's
+    assert not list((run_dir / "ranks" / "1").glob("checkpoints/*.pt"))

@@ -91,10 +91,10 @@ def test_fragments_that_fail_their_checks_are_counted_and_never_acknowledged(rep
     assert sum(server.bad.values()) == 3 and server.bad["sender"] == 1
 
 
-def ask_for_a_batch(bus: MemoryBus, server: ReplayServer) -> list[SampleReply]:
+def ask_for_a_batch(bus: MemoryBus, server: ReplayServer, size: int = 2) -> list[SampleReply]:
     """A learner's sample query, answered by the server's own loop."""
     replies: list[SampleReply] = []
-    request = encode(SampleRequest(request_id=1, batch_size=2, beta=1.0))
+    request = encode(SampleRequest(request_id=1, batch_size=size, beta=1.0))
 
     def learner() -> None:
         for reply in bus.session().get(Keys(RUN).sample, payload=request, timeout=5.0):
@@ -323,3 +323,16 @@ def test_a_replay_restored_from_an_old_snapshot_takes_in_and_acknowledges_at_onc
         assert reply.ready  # and the learner samples on at the ratio
     finally:
         server.close()
+
+
+def test_a_batch_up_to_the_growth_ceiling_is_served_and_a_larger_one_refused(replay):
+    server, bus = replay
+    grown = dataclasses.replace(server.config, max_batch_fragments=4, replay_ratio=4.0)
+    server.config, server.limiter = grown, grown.rate_limiter()
+    for seed in range(6):
+        send(bus, make_traj(seed=seed))
+    server.poll(0.0)
+    (reply,) = ask_for_a_batch(bus, server, size=4)  # twice batch_fragments: growth's
+    assert reply.ready and len(reply.keys) == 4
+    (reply,) = ask_for_a_batch(bus, server, size=5)
+    assert not reply.ready and "max_batch_fragments" in reply.reason and "(4" in reply.reason

@@ -186,31 +186,6 @@ def test_cluster_learns_inverted_pendulum(procs, tmp_path):
         p.name for p in (run_dir / "logs").iterdir()}
 
 
-def test_two_replay_shards_and_two_learner_ranks_learn_inverted_pendulum(procs, tmp_path):
-    """Each actor writes to its own shard, each learner rank samples from both: the run learns
-    as one replay's and one learner's does, each shard keeps its own state and rank 0 the
-    run's files."""
-    run_dir = tmp_path / "run"
-    cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "100000",
-                          "--seed", "1", "--run-dir", str(run_dir), "--set", "replay_shards=2",
-                          "--set", "learners=2")
-    assert cluster.wait(540) == 0, procs.output(cluster)[-3000:]
-    rows = read_metrics(run_dir / "metrics.jsonl")
-    returns = [r["charts/episodic_return"] for r in rows if "charts/episodic_return" in r]
-    assert statistics.mean(returns[-20:]) >= 800, returns[-20:]
-    assert max(r["global_step"] for r in rows) >= 100000
-    logs = {p.name for p in (run_dir / "logs").iterdir()}
-    assert {"replay-0.log", "replay-1.log", "learner-0.log", "learner-1.log"} <= logs, logs
-    assert list((run_dir / "checkpoints").glob("final_*.pt"))  # rank 0's
-    assert not list((run_dir / "ranks" / "1").glob("checkpoints/*.pt"))
-    for shard in (0, 1):  # each shard's own log and snapshot, with fragments in it
-        assert list((run_dir / f"replay-{shard}").iterdir()), shard
-        text = (run_dir / "logs" / f"replay-{shard}.log").read_text()
-        assert "serving" in text, text[-2000:]
-    train = (run_dir / "train.toml").read_text()
-    assert "replay_shards = 2" in train and "learners = 2" in train
-
-
 def test_ctrl_c_stops_the_cluster_in_order_with_a_checkpoint(procs, tmp_path):
     run_dir = tmp_path / "run"
     cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "1000000",

@@ -12,7 +12,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from tpdeb.protocol.messages import MAX_REPLAY_SHARDS
+from tpdeb.protocol.messages import MAX_BATCH_SIZE, MAX_REPLAY_SHARDS
 from tpdeb.services.config import ConfigError
 from tpdeb.services.device import check_device_setting
 from tpdeb.tpdeb_core.loss_config import LossConfig, PriorityConfig
@@ -188,6 +188,11 @@ class ReplaySettings:
 
     batch_fragments: int = 8
     """fragments per learner batch (B); a batch holds B·T steps"""
+    max_batch_fragments: int = 0
+    """batch growth: the learner doubles its batch from batch_fragments up to this many
+    fragments while it is the run's limit and a doubled batch's update costs at most 1.5× the
+    smaller one's (a GPU's headroom turned into env steps; the replay ratio is kept, so a
+    larger batch means fewer updates per env step); 0: batch_fragments, no growth"""
     replay_ratio: float = 16.0
     """sampled steps per inserted step (Reverb's samples_per_insert)"""
     max_replay_ratio: float = 0.0
@@ -220,6 +225,11 @@ class ReplaySettings:
         chain_post_init(ReplaySettings, self)
         check(self, [
             (self.batch_fragments >= 1, "batch_fragments", "must be ≥ 1"),
+            (self.max_batch_fragments == 0 or self.max_batch_fragments >= self.batch_fragments,
+             "max_batch_fragments", f"must be 0 (no growth) or ≥ batch_fragments="
+             f"{self.batch_fragments}"),
+            (self.max_batch_fragments <= MAX_BATCH_SIZE, "max_batch_fragments",
+             f"must be ≤ {MAX_BATCH_SIZE} (the largest batch a sample reply carries)"),
             (self.prioritized_capacity >= 1, "prioritized_capacity", "must be ≥ 1"),
             (0.0 <= self.zeta <= 1.0, "zeta", "must be in [0, 1]"),
             (0.0 <= self.beta_start <= 1.0, "beta_start", "must be in [0, 1]"),
@@ -328,9 +338,15 @@ class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig)
     def batch_steps(self) -> int:
         return self.batch_fragments * self.fragment_len
 
+    @property
+    def largest_batch(self) -> int:
+        """The most fragments a batch may hold (batch growth's ceiling)."""
+        return max(self.batch_fragments, self.max_batch_fragments)
+
     def rate_limiter(self) -> RateLimiter:
+        largest = self.largest_batch * self.fragment_len  # the limiter is built for it
         minimum = RateLimiter.min_error_buffer(
-            self.replay_ratio, self.fragment_len, self.batch_steps) if self.replay_ratio > 0 else 0
+            self.replay_ratio, self.fragment_len, largest) if self.replay_ratio > 0 else 0
         error_buffer = self.rate_error_buffer_steps or 2.0 * minimum
         capacity = self.prioritized_capacity * self.fragment_len + self.uniform_capacity_steps
         try:
@@ -339,7 +355,7 @@ class SamplingConfig(RunSettings, ModelSettings, ReplaySettings, PriorityConfig)
                 min_size_to_sample=self.learning_starts_fragments * self.fragment_len,
                 error_buffer=error_buffer,
                 insert_steps=self.fragment_len,
-                sample_steps=self.batch_steps,
+                sample_steps=largest,
                 capacity_steps=capacity,
                 max_samples_per_insert=self.max_replay_ratio or None,
             )
@@ -375,6 +391,11 @@ class LearningConfig(SamplingConfig, LearnerSettings, LossConfig):
         if self.anneal_log_std and self.policy_std != "global":
             raise ConfigError(f"anneal_log_std=true holds the global log-std, not "
                               f"policy_std={self.policy_std!r}: set policy_std=global")
+        if self.max_batch_fragments > self.batch_fragments and self.learners > 1:
+            raise ConfigError(
+                f"max_batch_fragments={self.max_batch_fragments} (batch growth) is for one "
+                f"learner, not learners={self.learners}: the ranks would time and grow apart; "
+                f"set batch_fragments to the batch each rank should take")
 
     def loss_config(self) -> LossConfig:
         names = {f.name for f in dataclasses.fields(LossConfig)}
