@@ -546,8 +546,9 @@ class LearnerService:
         priorities = self.learner.update(placed, norm)
         self.send_priorities((batch.keys, batch.from_prioritized, priorities))
         self.update_s += time.perf_counter() - started
-        if (self.compiler is not None and not self.compiled
-                and len(batch.keys) == self.batch_fragments):  # (the shape from here on)
+        if self.compiler is not None and not self.compiled and (
+                self.growth is None or len(batch.keys) == self.batch_fragments):  # growth: the
+            # batch size from here on, not one of the old size still in the queue
             self.prepare_compiled(placed, norm)
         if self.learner.updates % cfg.params_publish_interval == 0:
             self.publish_params()
@@ -723,7 +724,7 @@ class LearnerService:
         if left is not None:
             values["time_left_s"] = left
         self.stats_publisher.put(encode(Stats(
-            role="learner", ident="0", values=finite_values(values),
+            role="learner", ident=str(self.rank), values=finite_values(values),
             episode_returns=np.zeros(0), episode_lengths=np.zeros(0, np.int64))))
 
     def log_progress(self, sps: float) -> None:

@@ -308,13 +308,15 @@ def test_two_shards_and_two_ranks_learn_through_kill9_of_a_shard_and_a_rank(proc
         acks[1].wait_after(killed + 0.05, "shard 1 restarted")
         # rank 1: the group restarts from rank 0's checkpoint and trains on
         time.sleep(3)  # past a periodic checkpoint
-        before = max(v for _, v in stats.series("learner", "param_version"))
+        before = max(v for _, v in stats.series("learner", "param_version", "0"))
         os.kill(service_pid(run_dir, "learner-1"), signal.SIGKILL)
         killed = time.monotonic()
-        stats.wait("learner", "param_version", lambda v: v > before, since=killed + 0.5)
+        stats.wait("learner", "param_version", lambda v: v > before, since=killed + 0.5,
+                   ident="0")
         assert cluster.wait(400) == 0, procs.output(cluster)[-3000:]
-        versions = [v for _, v in stats.series("learner", "param_version")]
+        versions = [v for _, v in stats.series("learner", "param_version", "0")]  # rank 0's
         assert non_decreasing(versions), "a parameter version went back"
+        assert stats.series("learner", "param_version", "1")  # each rank's stats its own
     finally:
         session.close()
     out = procs.output(cluster)

@@ -22,7 +22,6 @@ Pure: the standard library only; the caller feeds it the times.
 
 from __future__ import annotations
 
-import statistics
 from dataclasses import dataclass, field
 
 from tpdeb.tpdeb_core.replay_samplers import check_int, check_real
@@ -66,8 +65,7 @@ class BatchGrowth:
         self._waited += waited_s
         if len(self._busy) < self.window:
             return None
-        median, waited = statistics.median(self._busy), self._waited / (
-            self._waited + sum(self._busy))
+        median, waited = _median(self._busy), self._waited / (self._waited + sum(self._busy))
         self._busy, self._waited, self._seen = [], 0.0, 0
         self.last = (self.size, median)
         if self.history and self.history[-1][0] * 2 == self.size:  # a doubling on trial
@@ -87,3 +85,8 @@ class BatchGrowth:
             return None
         self.size *= 2
         return self.size
+
+
+def _median(values: list[float]) -> float:
+    ordered, mid = sorted(values), len(values) // 2
+    return ordered[mid] if len(ordered) % 2 else 0.5 * (ordered[mid - 1] + ordered[mid])
