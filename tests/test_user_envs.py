@@ -154,7 +154,8 @@ def test_tpdeb_train_and_eval_run_a_users_env_from_its_directory(user_dir):
     train = subprocess.run(
         [str(bin_dir / "tpdeb-train"), "--env-id", "myenvs:Reach-v0", "--env-kwargs",
          '{"size": 2.0}', "--total-timesteps", "1024", "--num-envs", "2", "--run-dir", "run",
-         "--preset", "none"], cwd=user_dir, env=env, capture_output=True, text=True, timeout=300)
+         "--preset", "none", "--compile", "off"],  # (a new env's shapes: a cold compile, waited
+        cwd=user_dir, env=env, capture_output=True, text=True, timeout=300)  # for at the end)
     assert train.returncode == 0, train.stderr[-2000:]
     saved = (user_dir / "run" / "config.toml").read_text()
     assert 'env_kwargs = "{\\"size\\":2.0}"' in saved
