@@ -622,7 +622,7 @@ class LearnerService:
             return
         old, seconds = self.growth.last
         if size < old:
-            why = f"{seconds / self.growth.history[-1][1]:.2f}× one on {size}: kept at {size}"
+            why = f"{seconds / self.growth.costs[size]:.2f}× one on {size}: kept at {size}"
         else:
             why = "the learner is the limit: the larger one is timed next"
         log.info(f"batch {old} → {size} fragments (an update on {old}: {1e3 * seconds:.1f} ms; "

@@ -43,6 +43,17 @@ def test_a_learner_that_waits_for_its_batches_is_not_the_limit_and_keeps_its_bat
     assert feed(growth, lambda size: 1e-3, updates=7) == [16]  # the actors caught up
 
 
+def test_a_doubling_measured_again_is_judged_again():
+    growth = BatchGrowth(8, 64, settle=0, window=2)
+    assert [growth.observe(1.0, 0.0) for _ in range(2)] == [None, 16]
+    # at 16 the first window is cheap but the learner waited: it stays at 16 and measures again
+    assert [growth.observe(1.2, 1.0) for _ in range(2)] == [None, None]
+    assert growth.size == 16 and not growth.settled
+    # measured again, an update on 16 costs 2.5× one on 8: 8 is taken back
+    assert [growth.observe(2.5, 0.0) for _ in range(2)] == [None, 8]
+    assert growth.settled and growth.size == 8 and growth.last == (16, 2.5)
+
+
 def test_the_rule_is_timed_only_after_each_change_has_settled():
     growth = BatchGrowth(8, 16, settle=3, window=2)
     # the first three updates of a size are not timed: a slow start does not count

@@ -10,11 +10,12 @@ actors insert faster at the same ratio. `BatchGrowth` decides it from the learne
 - at each size it lets `settle` updates pass (a new shape's first calls are slow) and then
   times `window` of them, taking the median seconds per update (the loop's busy time: the
   update and what the loop does around it, not the waits for a batch);
-- from the starting size it asks for the doubled one only if the learner waited for batches
-  at most `max_wait` of the window's time (otherwise the actors are the limit and a larger
-  batch buys nothing); measured again there, the doubled size is kept if its update costs at
-  most `cost` times the smaller one's (`cost` < 2: more fragments learned per second), and the
-  next doubling is tried, up to `largest`; otherwise the smaller size is taken back and kept.
+- it asks for the doubled size only if the learner waited for batches at most `max_wait` of
+  the window's time (otherwise the actors are the limit and a larger batch buys nothing: it
+  measures again); every window at a doubled size is a trial: the size is kept while its
+  update costs at most `cost` times the half size's (`cost` < 2: more fragments learned per
+  second), and the next doubling is tried, up to `largest`; otherwise the half size is taken
+  back and kept.
 - Once settled it does not move again.
 
 Pure: the standard library only; the caller feeds it the times.
@@ -38,7 +39,7 @@ class BatchGrowth:
     window: int = 50  # timed updates per size
     max_wait: float = 0.1  # the learner is the limit: it waited ≤ this share of the window
     settled: bool = False
-    history: list[tuple[int, float]] = field(default_factory=list)  # (size, median s/update)
+    costs: dict[int, float] = field(default_factory=dict)  # size → its latest median s/update
     last: tuple[int, float] | None = None  # the latest window's (size, median s/update)
     _busy: list[float] = field(default_factory=list, repr=False)
     _waited: float = field(default=0.0, repr=False)
@@ -68,16 +69,12 @@ class BatchGrowth:
         median, waited = _median(self._busy), self._waited / (self._waited + sum(self._busy))
         self._busy, self._waited, self._seen = [], 0.0, 0
         self.last = (self.size, median)
-        if self.history and self.history[-1][0] * 2 == self.size:  # a doubling on trial
-            smaller, its_median = self.history[-1]
-            if median > self.cost * its_median:
-                self.settled = True
-                self.size = smaller
-                return smaller
-        if self.history and self.history[-1][0] == self.size:
-            self.history[-1] = (self.size, median)  # measured again (the learner had waited)
-        else:
-            self.history.append((self.size, median))
+        smaller = self.costs.get(self.size // 2)
+        if smaller is not None and median > self.cost * smaller:  # every window of a doubling
+            self.settled = True  # is a trial: the larger batch costs too much, its half stays
+            self.size //= 2
+            return self.size
+        self.costs[self.size] = median
         if self.size * 2 > self.largest:
             self.settled = True
             return None
@@ -86,6 +83,10 @@ class BatchGrowth:
         self.size *= 2
         return self.size
 
+    @property
+    def history(self) -> list[tuple[int, float]]:
+        """(size, its latest median seconds per update), in the order the sizes were tried."""
+        return list(self.costs.items())
 
 def _median(values: list[float]) -> float:
     ordered, mid = sorted(values), len(values) // 2
