@@ -1,7 +1,7 @@
 """Sample replies through Zenoh's shared memory or through TCP: which is faster on one host?
 
     python bench/shm_probe.py                 # 80 KB (a batch of 8 HalfCheetah fragments), 320
-                                              # KB and 1.3 MB replies, 2,000 queries each way
+                                              # KB and 1.3 MB replies, 20 queries each way
     python bench/shm_probe.py --out docs/data/capacity/shm-probe.json
 
 Where a replay shard and a learner share a host, every sample reply (~79 KB for 8 × 64 steps)
@@ -15,6 +15,11 @@ once with it on, where the replier copies each encoded reply into a buffer from 
 encoder writes bytes; there is no zero-copy encode), and reports the median round trip and the
 replies per second one asker gets. Each reply is checked on arrival (its size, its first and
 last byte, and whether it came as shared memory).
+
+What it found (docs/BENCHMARKS.md): shared memory halves the round trip, but the replier's
+provider did not get its buffers back — past its pool (64 of the largest replies, 83 MB) an
+allocation waits forever and the query times out — so the default runs 20 queries per size,
+and the cluster's path stays TCP until buffers are returned.
 
 The machine must be otherwise idle: these are timings.
 """
@@ -56,7 +61,7 @@ def serve(endpoint: str, shm: bool) -> None:
         size = int(query.payload.to_bytes())
         data = cache.setdefault(size, bytes([7]) + os.urandom(size - 2) + bytes([9]))
         if provider is not None:
-            buf = provider.alloc(size, zenoh.shm.GarbageCollect(zenoh.shm.BlockOn()))
+            buf = provider.alloc(size, zenoh.shm.GarbageCollect())
             buf[0:size] = data  # the encoded reply copied into the shared buffer
             payload = zenoh.ZBytes(buf)
         else:
@@ -77,6 +82,8 @@ def ask(session, size: int, queries: int) -> dict:
         started = time.perf_counter()
         got = None
         for reply in session.get(KEY, payload=str(size).encode(), timeout=10.0):
+            if reply.ok is None:
+                raise RuntimeError(f"the replier failed: {reply.err.payload.to_string()}")
             got = reply.ok.payload
         data = got.to_bytes()  # the learner decodes from bytes
         times.append(time.perf_counter() - started)
@@ -130,7 +137,9 @@ def route(endpoint: str, shm: bool) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--queries", type=int, default=2000, help="queries per size and mode")
+    parser.add_argument("--queries", type=int, default=20,
+                        help="queries per size and mode (more exhaust the replier's 83 MB "
+                        "shared-memory pool: its buffers were not given back to it)")
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
     parser.add_argument("--role", choices=("router", "serve"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
