@@ -1,7 +1,7 @@
 """Sample replies through Zenoh's shared memory or through TCP: which is faster on one host?
 
     python bench/shm_probe.py                 # 80 KB (a batch of 8 HalfCheetah fragments), 320
-                                              # KB and 1.3 MB replies, 20 queries each way
+                                              # KB and 1.3 MB replies, 500 queries each way
     python bench/shm_probe.py --out docs/data/capacity/shm-probe.json
 
 Where a replay shard and a learner share a host, every sample reply (~79 KB for 8 × 64 steps)
@@ -16,10 +16,9 @@ encoder writes bytes; there is no zero-copy encode), and reports the median roun
 replies per second one asker gets. Each reply is checked on arrival (its size, its first and
 last byte, and whether it came as shared memory).
 
-What it found (docs/BENCHMARKS.md): shared memory halves the round trip, but the replier's
-provider did not get its buffers back — past its pool (64 of the largest replies, 83 MB) an
-allocation waits forever and the query times out — so the default runs 20 queries per size,
-and the cluster's path stays TCP until buffers are returned.
+The replier's allocations collect the buffers the asker has dropped when the pool (64 of the
+largest replies, 83 MB) runs out (`GarbageCollect`); blocking on a full pool instead
+(`BlockOn` inside it) hung the replier once the pool was spent.
 
 The machine must be otherwise idle: these are timings.
 """
@@ -137,9 +136,7 @@ def route(endpoint: str, shm: bool) -> None:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--queries", type=int, default=20,
-                        help="queries per size and mode (more exhaust the replier's 83 MB "
-                        "shared-memory pool: its buffers were not given back to it)")
+    parser.add_argument("--queries", type=int, default=500, help="queries per size and mode")
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
     parser.add_argument("--role", choices=("router", "serve"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
