@@ -267,19 +267,15 @@ def learner_ceilings(args) -> list[dict]:
 
 
 def grown(rows: list[dict], hidden: str) -> dict:
-    """The learner row batch growth would settle on for a network (tpdeb_core.batch_growth:
-    from the smallest batch, each doubling kept while an update costs ≤ 1.5× the smaller's)."""
+    """The learner row batch growth would settle on for a network: its rule
+    (tpdeb_core.batch_growth) fed each batch size's measured seconds per update."""
     from tpdeb.tpdeb_core.batch_growth import BatchGrowth
 
-    sizes = sorted((r for r in rows if r["hidden"] == hidden), key=lambda r: r["batch_fragments"])
-    kept = sizes[0]
-    for row in sizes[1:]:
-        if row["batch_fragments"] != 2 * kept["batch_fragments"] or (
-                kept["updates_per_s"] / row["updates_per_s"] > BatchGrowth.cost):
-            break
-        kept = row
-    return kept
-
+    by_size = {r["batch_fragments"]: r for r in rows if r["hidden"] == hidden}
+    growth = BatchGrowth(min(by_size), max(by_size), settle=0, window=1)
+    while not growth.settled and growth.size in by_size:
+        growth.observe(1.0 / by_size[growth.size]["updates_per_s"], 0.0)
+    return by_size[growth.size if growth.size in by_size else growth.last[0]]
 
 def acting_rates(args) -> dict[str, dict]:
     """Per task: env steps/s of one actor (4 envs, the policy in numpy, one core), and the

@@ -141,6 +141,24 @@ def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int =
     return row
 
 
+def cluster_arguments(parser, cluster_seconds: float) -> None:
+    """The options every bigger-machine bench shares: the learner's device, the actor counts,
+    each cluster run's training seconds, the seed."""
+    parser.add_argument("--device", default="cuda", help="the learner's device (cuda, cuda:N, "
+                        "or cpu for a smoke run)")
+    parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 14],
+                        help="actor counts of the cluster runs (one replay, one learner)")
+    parser.add_argument("--cluster-seconds", type=float, default=cluster_seconds,
+                        help="training seconds of each cluster run")
+    parser.add_argument("--seed", type=int, default=1)
+
+
+def save(result: dict, record: dict, out: Path) -> None:
+    """The results so far, stamped with the run's provenance, to {out}/results.json."""
+    provenance.stamp(result, record)
+    (out / "results.json").write_text(json.dumps(result, indent=1))
+
+
 def cpu_cells(cpu: dict) -> str:
     """A table row's CPU-per-second cells: replay, router, learner, actors."""
     return " | ".join(f"{cpu.get(role, 0):.2f}" for role in ("replay", "router", "learner",
@@ -165,17 +183,12 @@ def tables(result: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda", help="the learner's device (cuda, cuda:N, "
-                        "or cpu for a smoke run)")
+    cluster_arguments(parser, cluster_seconds=40.0)
     parser.add_argument("--env-id", default="HalfCheetah-v5")
     parser.add_argument("--seconds", type=float, default=5.0,
                         help="each updates/s measurement")
-    parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 14])
     parser.add_argument("--cpu-actors", type=int, nargs="*", default=[14],
                         help="cluster runs repeated with the learner on the CPU, for comparison")
-    parser.add_argument("--cluster-seconds", type=float, default=40.0,
-                        help="training seconds of each cluster run")
-    parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     record = provenance.start()
     device = resolve_device(args.device)
@@ -188,11 +201,9 @@ def main() -> None:
                                                        if args.device != "cpu"]
     for actors, device_name in runs:
         result["cluster"].append(cluster_run(args, actors, device_name))
-        provenance.stamp(result, record)
-        (OUT / "results.json").write_text(json.dumps(result, indent=1))
+        save(result, record, OUT)
     result["table_markdown"] = tables(result)
-    provenance.stamp(result, record)
-    (OUT / "results.json").write_text(json.dumps(result, indent=1))
+    save(result, record, OUT)
     print()
     print(result["table_markdown"])
 

@@ -26,11 +26,10 @@ table for BENCHMARKS ("Scaling").
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import provenance
-from gpu import cluster_run, cpu_cells, machine
+from gpu import cluster_arguments, cluster_run, cpu_cells, machine, save
 
 from tpdeb.services.device import resolve_device
 
@@ -74,16 +73,11 @@ def table(rows: list[dict]) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cuda", help="the learner's device (cuda, or cpu "
-                        "for a smoke run)")
-    parser.add_argument("--envs", nargs="+", default=["HalfCheetah-v5", "Ant-v5"])
-    parser.add_argument("--actors", type=int, nargs="+", default=[1, 2, 4, 8, 14],
-                        help="the first task's actor counts (one replay, one learner)")
+    cluster_arguments(parser, cluster_seconds=30.0)
+    parser.add_argument("--envs", nargs="+", default=["HalfCheetah-v5", "Ant-v5"],
+                        help="the first task's curve over --actors; the others at --wide")
     parser.add_argument("--wide", type=int, default=14,
                         help="actors of the runs with 2 replay shards and 2 learner ranks")
-    parser.add_argument("--cluster-seconds", type=float, default=30.0,
-                        help="training seconds of each cluster run")
-    parser.add_argument("--seed", type=int, default=1)
     args = parser.parse_args()
     if args.wide < 2:
         parser.error("--wide must be ≥ 2 (a replay shard per actor at least)")
@@ -96,11 +90,9 @@ def main() -> None:
     for env_id, actors, shards, learners, settings in plan(args):
         result["runs"].append(cluster_run(args, actors, args.device, shards, learners, env_id,
                                           out=OUT, settings=settings))
-        provenance.stamp(result, record)
-        (OUT / "results.json").write_text(json.dumps(result, indent=1))
+        save(result, record, OUT)
     result["table_markdown"] = table(result["runs"])
-    provenance.stamp(result, record)
-    (OUT / "results.json").write_text(json.dumps(result, indent=1))
+    save(result, record, OUT)
     print()
     print(result["table_markdown"])
 
