@@ -155,9 +155,13 @@ class LearnerService:
         self.compiled = False
         self.pending: tuple | None = None  # a batch's priorities not yet sent
         cfg = self.config
-        self.batch_fragments = cfg.batch_fragments  # what the fetchers ask for
         self.growth = (BatchGrowth(cfg.batch_fragments, cfg.largest_batch)
                        if cfg.largest_batch > cfg.batch_fragments else None)
+
+    @property
+    def batch_fragments(self) -> int:
+        """What the fetchers ask for: the configured batch, or the size batch growth holds."""
+        return self.growth.size if self.growth is not None else self.config.batch_fragments
 
     def _writers(self) -> None:
         """The run dir's writers, each of which a full disk costs writes, not the run."""
@@ -627,7 +631,6 @@ class LearnerService:
             why = "the learner is the limit: the larger one is timed next"
         log.info(f"batch {old} → {size} fragments (an update on {old}: {1e3 * seconds:.1f} ms; "
                  f"{why})")
-        self.batch_fragments = size
         if self.compiler is not None:  # compiled again for the new shape, eager meanwhile
             self.learner.use(self.learner.rules)
             self.compiler.reset()
