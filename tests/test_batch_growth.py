@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from tests.test_checkpoint import close, service_for
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.train import TrainConfig
 from tpdeb.tpdeb_core.batch_growth import BatchGrowth
@@ -92,3 +93,21 @@ def test_the_growth_ceiling_is_checked_and_builds_the_replays_rate_limiter():
         return stats["max_diff"] - stats["min_diff"]
 
     assert width(grown) > width(plain)
+
+
+def test_the_learner_asks_for_the_size_its_growth_picks(tmp_path):
+    service, _ = service_for(tmp_path, compile="off", batch_fragments=4, max_batch_fragments=8)
+    asked = []
+    service._ask = lambda key, request: asked.append(request) or []  # no replay: no answer
+    try:
+        service.fetch(1)
+        for _ in range(60):  # cheap updates while the learner never waits: doubled
+            service.grow(busy_s=1e-3, waited_s=0.0)
+        service.fetch(2)
+        for _ in range(60):  # an update on 8 costs 3× one on 4: 4 is taken back
+            service.grow(busy_s=3e-3, waited_s=0.0)
+        service.fetch(3)
+    finally:
+        close(service)
+    assert [request.batch_size for request in asked] == [4, 8, 4]
+    assert service.growth.settled
