@@ -646,10 +646,14 @@ class LearnerService:
 
     def follow_schedules(self) -> None:
         """The learning rate and the log-std ceiling where they are annealed, at the run's
-        progress (the steps' or the seconds', whichever is further along)."""
+        progress (the steps' or the seconds', whichever is further along, or schedule_steps'
+        where they come first)."""
         cfg, agreed = self.config, self.agreed
-        progress = (self.budget.progress(self.global_step) if agreed is None  # rank 0's, in a group
-                    else self.budget.progress_at(agreed.global_step, agreed.elapsed_s))
+        step = self.global_step if agreed is None else agreed.global_step  # rank 0's, in a group
+        progress = (self.budget.progress(step) if agreed is None
+                    else self.budget.progress_at(step, agreed.elapsed_s))
+        if cfg.schedule_steps > 0:
+            progress = min(1.0, max(progress, step / cfg.schedule_steps))
         if cfg.anneal_lr:
             self.learner.set_learning_rate(cfg.learning_rate * max(1e-3, 1.0 - progress))
         if cfg.anneal_log_std:

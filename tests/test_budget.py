@@ -136,6 +136,26 @@ def test_the_log_std_ceiling_falls_with_the_run_and_needs_the_global_log_std(tmp
         LearnerServiceConfig(anneal_log_std=True, policy_std="state")
 
 
+def test_schedule_steps_end_the_schedules_before_the_run_and_hold_their_end_values(tmp_path):
+    service, _ = service_for(tmp_path, anneal_log_std=True, anneal_lr=True, init_log_std=0.0,
+                             final_log_std=-1.0, total_timesteps=10_000, train_for_seconds=0.0,
+                             schedule_steps=1000)
+    lr = service.config.learning_rate
+    try:
+        service.global_step = 250  # the schedules' 0.25, the run's 0.025
+        service.follow_schedules()
+        assert service.learner.log_std_ceiling == pytest.approx(-0.25)
+        assert service.learner.optimizer.param_groups[0]["lr"] == pytest.approx(0.75 * lr)
+        service.global_step = 5000  # past schedule_steps: the end values, held
+        service.follow_schedules()
+        assert service.learner.log_std_ceiling == pytest.approx(-1.0)
+        assert service.learner.optimizer.param_groups[0]["lr"] == pytest.approx(1e-3 * lr)
+    finally:
+        close(service)
+    with pytest.raises(ConfigError, match="schedule_steps=-1: must be ≥ 0"):
+        LearnerServiceConfig(schedule_steps=-1)
+
+
 def test_cluster_stops_on_time_and_exits_0(procs, tmp_path):
     run_dir = tmp_path / "run"
     cluster = procs.spawn("cluster", "--env-id", ENV, "--total-timesteps", "100000000",

@@ -273,6 +273,11 @@ class LearnerSettings:
     the behaviour policies' log-std under the same ceiling"""
     final_log_std: float = -2.0
     """the ceiling of the log-std at the end of the run (with anneal_log_std)"""
+    schedule_steps: int = 0
+    """env steps by which anneal_lr and anneal_log_std reach their end values, when that comes
+    before the run's own end (0: the run's steps or seconds, whichever is further along); the
+    rest of the run trains at the end values (a clock budget longer than the steps a preset
+    was tuned for)"""
     compile: str = "auto"
     """auto: the update runs eagerly from the first batch while torch.compile prepares it in
     the background (the cache under ~/.cache/tpdeb makes later starts quick), then runs
@@ -302,6 +307,8 @@ class LearnerSettings:
             (self.checkpoint_interval_s >= 0, "checkpoint_interval_s",
              "must be ≥ 0 (0 turns periodic checkpoints off)"),
             (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
+            (self.schedule_steps >= 0, "schedule_steps",
+             "must be ≥ 0 (0: the schedules follow the run's own budget)"),
             (1 <= self.learners <= 1024, "learners", "must be in [1, 1024]"),
             (bool(self.resume.strip()), "resume", "use auto, never or the path of a checkpoint"),
             (check_device_setting(self.device) is None, "device",
