@@ -24,6 +24,7 @@ import json
 import os
 import platform
 import signal
+import statistics
 import subprocess
 import sys
 import time
@@ -35,10 +36,12 @@ from procfs import CpuSampler, cmdline, descendants, service_name
 from throughput import bench_learner, preset_config, sample_batches
 
 from tpdeb.services.device import describe, resolve_device
+from tpdeb.services.store.metrics import read_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out" / "gpu"
 SIZES = ((64, 64), (256, 256), (1024, 1024))
+SHARED = "perf/sample_replies_shared_memory"  # the learner's batches through shared memory
 
 
 def machine(device: torch.device) -> dict:
@@ -93,12 +96,15 @@ def services_below(root: int) -> dict[tuple[int, str], int]:
 
 
 def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int = 1,
-                env_id: str | None = None, out: Path = OUT, settings: tuple = ()) -> dict:
-    """One cluster run; `settings`: more KEY=VALUE for --set (batch growth, a wider batch)."""
+                env_id: str | None = None, out: Path = OUT, settings: tuple = (),
+                environ: dict | None = None) -> dict:
+    """One cluster run; `settings`: more KEY=VALUE for --set (batch growth, a wider batch);
+    `environ`: more variables for the cluster (services' own settings, TPDEB_*)."""
     env_id = env_id or args.env_id
     name = f"{env_id}-{actors}actors-{device}" + (f"-{shards}shards-{learners}learners"
                                                   if (shards, learners) != (1, 1) else "")
     name += "".join(f"-{item.replace('=', '')}" for item in settings)
+    name += "".join(f"-{k.lower()}{v}" for k, v in (environ or {}).items())
     run_dir = out / "runs" / name
     cmd = [sys.executable, "-m", "tpdeb.services.cluster", "--env-id", env_id,
            "--total-timesteps", str(10**9), "--train-for-seconds", str(args.cluster_seconds),
@@ -111,7 +117,7 @@ def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int =
     start = time.perf_counter()
     with (out / f"cluster_{name}.log").open("w") as log:
         proc = subprocess.Popen(cmd, cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
-                                start_new_session=True)
+                                start_new_session=True, env={**os.environ, **(environ or {})})
         sampler = CpuSampler(lambda: services_below(proc.pid), 1.0)
         sampler.start()
         try:
@@ -126,12 +132,17 @@ def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int =
     end_file = run_dir / "end.json"
     end = json.loads(end_file.read_text()) if end_file.is_file() else {}
     train_s = end.get("train_elapsed_s") or float("nan")
+    metrics = run_dir / "metrics.jsonl"
+    shared = [r[SHARED] for r in (read_metrics(metrics) if metrics.is_file() else [])
+              if SHARED in r]
     row = {"env_id": env_id, "actors": actors, "replay_shards": shards, "learners": learners,
-           "settings": list(settings), "device": device, "exit_code": code,
+           "settings": list(settings), "environ": dict(environ or {}), "device": device,
+           "exit_code": code,
            "wall_s": round(wall, 1),
            "env_steps_per_s": end.get("global_step", 0) / train_s,
            "updates_per_s": end.get("updates", 0) / train_s,
-           "cpu_per_s": {k: round(v / wall, 2) for k, v in by_role(sampler.last).items()}}
+           "cpu_per_s": {k: round(v / wall, 2) for k, v in by_role(sampler.last).items()},
+           "batches_through_shared_memory": statistics.median(shared) if shared else None}
     cpu = row["cpu_per_s"]
     print(f"[gpu] {env_id}, {actors} actors, {shards} shard(s), {learners} learner(s) on {device}: "
           f"{row['env_steps_per_s']:,.0f} env steps/s, "
@@ -139,6 +150,29 @@ def cluster_run(args, actors: int, device: str, shards: int = 1, learners: int =
           f"router {cpu.get('router', 0):.2f}, learner {cpu.get('learner', 0):.2f}, actors "
           f"{cpu.get('actors', 0):.2f} (exit {code})", flush=True)
     return row
+
+
+def alternated(args, variants: dict[str, dict], pairs: int, actors: int, out: Path) -> dict:
+    """Cluster runs of each variant (cluster_run's keyword arguments), `pairs` rounds with the
+    order turned each round; each variant's runs and its medians of env steps/s and updates/s,
+    and the first variant's env steps/s over the second's."""
+    runs: dict[str, list[dict]] = {name: [] for name in variants}
+    for i in range(pairs):
+        for name in (list(variants) if i % 2 == 0 else list(reversed(variants))):
+            runs[name].append(cluster_run(args, actors, "cpu", out=out, **variants[name]))
+    result = {"runs": runs}
+    for name, rows in runs.items():
+        result[f"{name}_env_steps_per_s"] = statistics.median(r["env_steps_per_s"] for r in rows)
+        result[f"{name}_updates_per_s"] = statistics.median(r["updates_per_s"] for r in rows)
+        steps = " / ".join(f"{r['env_steps_per_s']:,.0f}" for r in rows)
+        print(f"{name:>13}: env steps/s {steps} (median "
+              f"{result[f'{name}_env_steps_per_s']:,.0f}); batches through shared memory "
+              f"{[r['batches_through_shared_memory'] for r in rows]}", flush=True)
+    first, second = list(variants)[:2]
+    ratio = result[f"{first}_env_steps_per_s"] / result[f"{second}_env_steps_per_s"]
+    result[f"ratio_{first}_over_{second}"] = round(ratio, 3)
+    print(f"{first} ÷ {second}, env steps/s (medians): {ratio:.3f}")
+    return result
 
 
 def cluster_arguments(parser, cluster_seconds: float) -> None:

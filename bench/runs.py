@@ -69,6 +69,13 @@ def save_json(path: Path, result: dict) -> None:
     provenance.written(path)
 
 
+def save_result(path: Path | None, result: dict, record: dict) -> None:
+    """`result` stamped with the run's provenance, and written to `path` where one is given."""
+    provenance.stamp(result, record)
+    if path:
+        save_json(path, result)
+
+
 def _exit_on_sigterm(signum, frame):
     raise SystemExit(128 + signum)
 

@@ -3,6 +3,9 @@
     python bench/shm_probe.py                 # 80 KB (a batch of 8 HalfCheetah fragments), 320
                                               # KB and 1.3 MB replies, 500 queries each way
     python bench/shm_probe.py --out docs/data/capacity/shm-probe.json
+    python bench/shm_probe.py --cluster --out docs/data/capacity/shm-cluster.json
+                                              # the default cluster with shared memory on and
+                                              # off, alternated (~6 minutes)
 
 Where a replay shard and a learner share a host, every sample reply (~79 KB for 8 × 64 steps)
 crosses the router over TCP loopback: the replay's session copies it into a batch, the kernel
@@ -20,6 +23,13 @@ The replier's allocations collect the buffers the asker has dropped when the poo
 largest replies, 83 MB) runs out (`GarbageCollect`); blocking on a full pool instead
 (`BlockOn` inside it) hung the replier once the pool was spent.
 
+With `--cluster` it measures what the cluster gets of it: `tpdeb-cluster` on `--env-id` (its
+preset, 2 actors × 4 envs, the learner on the CPU) trained for `--cluster-seconds`, with the
+replay's, the learner's and the router's `shared_memory` on (the default) and off
+(`TPDEB_SHARED_MEMORY=false`), `--pairs` times each, the order alternated: env steps/s, updates/s,
+the CPU of each role per second, and the share of the learner's batches that came through shared
+memory (its `perf/sample_replies_shared_memory`).
+
 The machine must be otherwise idle: these are timings.
 """
 
@@ -36,10 +46,12 @@ from pathlib import Path
 
 import provenance
 import zenoh
+from runs import save_result
 
 from tpdeb.services.launcher.plan import free_port
 from tpdeb.services.net.session import zenoh_config
 
+ROOT = Path(__file__).resolve().parents[1]
 KEY = "probe/sample"
 SIZES = (80_000, 320_000, 1_300_000)
 
@@ -134,21 +146,9 @@ def route(endpoint: str, shm: bool) -> None:
     session.close()
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--queries", type=int, default=500, help="queries per size and mode")
-    parser.add_argument("--out", type=Path, help="write the figures here as JSON")
-    parser.add_argument("--role", choices=("router", "serve"), help=argparse.SUPPRESS)
-    parser.add_argument("--endpoint", help=argparse.SUPPRESS)
-    parser.add_argument("--shm", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args()
-    if args.role == "router":
-        route(args.endpoint, args.shm)
-        return 0
-    if args.role == "serve":
-        serve(args.endpoint, args.shm)
-        return 0
-    record, result = provenance.start(), {"modes": {}}
+def round_trips(args) -> dict:
+    """One asker's round trips through the router, TCP and shared memory alternated."""
+    result = {"modes": {}}
     for shm in (False, True, False, True):  # alternated: the second pair checks the first
         name = "shared_memory" if shm else "tcp"
         rows = run_mode(shm, args.queries)
@@ -165,10 +165,43 @@ def main() -> int:
         result.setdefault("ratio_tcp_over_shm", {})[str(size)] = round(tcp / shm, 3)
         print(f"{size:>9,} B: TCP {tcp:,.1f} µs, shared memory {shm:,.1f} µs: "
               f"{tcp / shm:.2f}× faster with shared memory")
-    provenance.stamp(result, record)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1) + "\n")
+    return result
+
+
+def cluster_pairs(args) -> dict:
+    """The default cluster with shared memory on and off, alternated."""
+    from gpu import alternated
+
+    return alternated(args, {
+        "shared_memory": {"environ": {"TPDEB_SHARED_MEMORY": "true"}},
+        "tcp": {"environ": {"TPDEB_SHARED_MEMORY": "false"}}},
+        args.pairs, 2, ROOT / "bench" / "out" / "shm")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--queries", type=int, default=500, help="queries per size and mode")
+    parser.add_argument("--out", type=Path, help="write the figures here as JSON")
+    parser.add_argument("--cluster", action="store_true",
+                        help="the default cluster with shared memory on and off, alternated")
+    parser.add_argument("--env-id", default="HalfCheetah-v5", help="the cluster's task")
+    parser.add_argument("--cluster-seconds", type=float, default=60.0,
+                        help="training seconds of each cluster run")
+    parser.add_argument("--pairs", type=int, default=2, help="cluster runs each way")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--role", choices=("router", "serve"), help=argparse.SUPPRESS)
+    parser.add_argument("--endpoint", help=argparse.SUPPRESS)
+    parser.add_argument("--shm", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.role == "router":
+        route(args.endpoint, args.shm)
+        return 0
+    if args.role == "serve":
+        serve(args.endpoint, args.shm)
+        return 0
+    record = provenance.start()
+    result = cluster_pairs(args) if args.cluster else round_trips(args)
+    save_result(args.out, result, record)
     return 0
 
 

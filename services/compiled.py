@@ -30,6 +30,7 @@ import torch
 from tpdeb.tpdeb_core.learner import Batch, Learner, State
 
 log = logging.getLogger("tpdeb-learner")
+COMPILE_THREAD = "compile"  # the thread's name: its trial updates train a copy, alone
 
 
 def cache_dir() -> Path:
@@ -68,7 +69,7 @@ class BackgroundCompile:
         """Begin with a batch the learner has trained on (its shapes are every batch's)."""
         shadow = copy.deepcopy(self.learner.state)  # the tensors only: the learner trains on
         self.thread = threading.Thread(target=self._compile, args=(shadow, batch, norm),
-                                       daemon=True, name="compile")
+                                       daemon=True, name=COMPILE_THREAD)
         self.thread.start()
 
     def _compile(self, shadow: State, batch: Batch, norm: torch.Tensor) -> None:
@@ -76,7 +77,7 @@ class BackgroundCompile:
         try:
             if self.update is None:
                 configure_compiler()
-                self.update = torch.compile(self.learner.rules,
+                self.update = torch.compile(self.learner.rules.traced,
                                             **compile_options(self.learner))
             for _ in range(2):  # the second call runs what the first compiled
                 self.update(shadow, batch, norm)

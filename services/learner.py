@@ -104,7 +104,7 @@ class LearnerService:
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         if group is not None:
-            self.learner.rules.reduce = group.average
+            self.learner.rules.reduce = group.reducer()
         self.run_dir = config.default_run_dir()
         self.global_step = 0
         self.budget = Budget(config.total_timesteps, config.train_for_seconds)
@@ -135,6 +135,7 @@ class LearnerService:
         self.sums: dict[str, float] = {}
         self.count = 0
         self.wait_s = self.update_s = 0.0
+        self.replies = [0, 0]  # batches received, of them through shared memory (a window's)
         self.params_bytes = b""
         self.params_version = self.current_version = -1  # the encoded one, the latest one
         self.waiting_queries: list[tuple[object, int]] = []  # (query, version it has)
@@ -149,9 +150,7 @@ class LearnerService:
         # batches while an update runs
         self.batches: queue.Queue[tuple[SampleReply, Batch]] = queue.Queue(
             maxsize=self.config.requests_in_flight)
-        # (data-parallel learners run eager: their update exchanges gradients in its middle)
-        self.compiler = (BackgroundCompile(self.learner)
-                         if self.config.compile == "auto" and self.group is None else None)
+        self.compiler = BackgroundCompile(self.learner) if self.config.compile == "auto" else None
         self.compiled = False
         self.pending: tuple | None = None  # a batch's priorities not yet sent
         cfg = self.config
@@ -413,6 +412,10 @@ class LearnerService:
                              self.config.max_message_bytes)
             except DecodeError as exc:
                 self.log_bad(exc.kind, f"dropped a bad sample reply ({exc})")
+                continue
+            if got.ready:  # a batch; whether it came through shared memory
+                self.replies = [self.replies[0] + 1,
+                                self.replies[1] + (reply.ok.payload.as_shm() is not None)]
         return got
 
     def fetch_sharded(self, request_id: int) -> SampleReply | None:
@@ -526,16 +529,31 @@ class LearnerService:
         reply = batch[0] if batch is not None else None
         self.agreed = self.group.agree(
             reply.obs_moments if reply else None, reply.ret_moments if reply else None,
-            self.spec.obs_dim, self.global_step, self.budget.elapsed(), stop=batch is None)
+            self.spec.obs_dim, self.global_step, self.budget.elapsed(), stop=batch is None,
+            compiled=self.compile_state())
+        if self.compiler is not None and not self.compiled and self.agreed.compiled:
+            self.switch_compiled(self.agreed.compiled > 0)
         return None if self.agreed.stop else batch
+
+    def compile_state(self) -> int:
+        """This rank's compiled update for the group's agreement: 1 ready, −1 failed, 0 not
+        (yet)."""
+        compiler = self.compiler
+        if compiler is None or self.compiled or compiler.thread is None or not compiler.ready():
+            return 0
+        return 1 if compiler.error is None else -1
 
     def train_on(self, batch: SampleReply, placed: Batch | None = None) -> None:
         """One update on a sample reply (`placed`: its batch on the device already)."""
         cfg = self.config
         if self.agreed is None:  # alone: the moments this batch's reply carries
             parts = ([batch.obs_moments], [batch.ret_moments])
+            step = self.global_step
         else:  # in a group: every rank's, in rank order, the same on every rank
             parts = (self.agreed.obs, self.agreed.ret)
+            step = self.agreed.global_step
+        if cfg.obs_norm_steps and step >= cfg.obs_norm_steps:
+            parts = ([], parts[1])  # the observation normaliser holds from here on
         for rms, moments in zip((self.model.obs_rms, self.model.ret_rms), parts, strict=True):
             for part in moments:
                 if part is not None:
@@ -611,10 +629,23 @@ class LearnerService:
         compiler = self.compiler
         if compiler.thread is None:
             compiler.start(placed, norm)
-        elif compiler.ready():
-            self.compiled = True
-            if not compiler.install():
-                self.compiler = None  # eager from here on, whatever the batch
+        elif compiler.ready() and self.group is None:  # a group switches when all are ready
+            self.switch_compiled(True)
+
+    def switch_compiled(self, every_rank: bool) -> None:
+        """Run the compiled update from the next one on, or stay eager for good where it (or,
+        in a group, another rank's: `every_rank` false) could not be prepared: a group's
+        ranks must run the same code at every update to stay bit for bit equal."""
+        self.compiled = True
+        if every_rank:
+            if self.compiler.install():
+                return
+        else:
+            if self.compiler.thread is not None:
+                self.compiler.thread.join()
+            log.warning("another learner rank could not compile the update; the group goes "
+                        "on eager")
+        self.compiler = None  # eager from here on, whatever the batch
 
     def grow(self, busy_s: float, waited_s: float) -> None:
         """Batch growth: one update's loop time to the rule (once the update runs compiled,
@@ -747,6 +778,9 @@ class LearnerService:
             values["perf/batch_fragments"] = self.batch_fragments
         if self.checkpoints_written:
             values["perf/checkpoint_ms"] = 1e3 * self.checkpoint_s / self.checkpoints_written
+        replies, shared = self.replies
+        if replies:
+            values["perf/sample_replies_shared_memory"] = shared / replies
         busy = self.update_s + self.wait_s
         if busy > 0:
             values["perf/batch_wait_fraction"] = self.wait_s / busy
@@ -762,6 +796,7 @@ class LearnerService:
         self.metrics.log(self.global_step, values)
         self.metrics.flush()
         self.sums, self.count, self.wait_s, self.update_s = {}, 0, 0.0, 0.0
+        self.replies = [0, 0]
         self.checkpoint_s, self.checkpoints_written = 0.0, 0
         self.lag_sum, self.lag_count = 0.0, 0
         log.info(f"[{self.global_step:>10,}/{self.config.total_timesteps:,}] SPS {sps:7,.0f} | "

@@ -7,7 +7,8 @@ gloo through the host on CPUs and where ranks share a GPU). Per update:
 
 - `average` (the update's hook, between the gradients and Adam): the gradients and the
   metrics, summed in one flat all-reduce and divided by N — every rank then clips the same
-  global norm and steps Adam on the same numbers, so the parameters stay bit for bit equal;
+  global norm and steps Adam on the same numbers, so the parameters stay bit for bit equal.
+  A compiled update is two graphs with the all-reduce run eagerly between them;
 - `agree` (before the update, on the host): every rank's share of the normalisers' moments
   (each replay reply carries its steps' moments once) gathered and merged in rank order on
   every rank; rank 0's env steps and training seconds, from which every rank computes the same
@@ -23,6 +24,7 @@ Nothing here pickles: every exchange is a tensor of numbers.
 from __future__ import annotations
 
 import datetime
+import threading
 from typing import NamedTuple
 
 import numpy as np
@@ -30,6 +32,7 @@ import torch
 import torch.distributed as dist
 
 from tpdeb.protocol.messages import Moments
+from tpdeb.services.compiled import COMPILE_THREAD
 
 
 class Agreement(NamedTuple):
@@ -40,6 +43,7 @@ class Agreement(NamedTuple):
     global_step: int
     elapsed_s: float
     stop: bool
+    compiled: int  # the ranks' compiled updates: 1 all ready, 0 one still compiling, −1 one failed
 
 
 class Group:
@@ -63,6 +67,16 @@ class Group:
             dist.destroy_process_group()
 
     # -- per update
+    def reducer(self):
+        """The update's hook: `average`, run eagerly between the compiled update's two graphs
+        (the gradients', and Adam's with the rest), and skipped in the background compile's
+        trial updates on a copy of the learner, which no other rank makes."""
+        @torch.compiler.disable
+        def reduce(grads: list[torch.Tensor], metrics: torch.Tensor) -> None:
+            if threading.current_thread().name != COMPILE_THREAD:
+                self.average(grads, metrics)
+        return reduce
+
     def average(self, grads: list[torch.Tensor], metrics: torch.Tensor) -> None:
         """The gradients and the metrics averaged over the ranks, in place (one all-reduce)."""
         flat = torch.cat([g.reshape(-1) for g in grads] + [metrics.reshape(-1)])
@@ -80,10 +94,12 @@ class Group:
             offset += n
 
     def agree(self, obs: Moments | None, ret: Moments | None, obs_dim: int, global_step: int,
-              elapsed_s: float, stop: bool) -> Agreement:
-        """Every rank's moments, rank 0's progress and anyone's stop, in one all-gather."""
+              elapsed_s: float, stop: bool, compiled: int = 0) -> Agreement:
+        """Every rank's moments, rank 0's progress, anyone's stop and the least ready compiled
+        update (`compiled` as in Agreement: the group switches to it together), in one
+        all-gather."""
         row = np.concatenate([_packed(obs, obs_dim), _packed(ret, 1),
-                              [global_step, elapsed_s, float(stop)]])
+                              [compiled, global_step, elapsed_s, float(stop)]])
         mine = torch.as_tensor(row, dtype=torch.float64)
         rows = [torch.empty_like(mine) for _ in range(self.size)]
         dist.all_gather(rows, mine, group=self.host)
@@ -92,7 +108,7 @@ class Group:
         obs_parts = [m for m in (_unpacked(r[:width], (obs_dim,)) for r in table) if m]
         ret_parts = [m for m in (_unpacked(r[width:width + 3], ()) for r in table) if m]
         return Agreement(obs_parts, ret_parts, int(table[0, -3]), float(table[0, -2]),
-                         bool(table[:, -1].max()))
+                         bool(table[:, -1].max()), int(table[:, -4].min()))
 
     # -- at the start
     def broadcast_state(self, tensors: list[torch.Tensor], numbers: list[float]) -> list[float]:

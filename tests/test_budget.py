@@ -10,10 +10,11 @@ import math
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from tests.procs import ROOT, pids_with
-from tests.test_checkpoint import close, service_for
+from tests.test_checkpoint import close, service_for, spec_for
 from tpdeb.services.budget import SECONDS, STEPS, Budget, clock
 from tpdeb.services.config import ConfigError
 from tpdeb.services.config.service import LearnerServiceConfig
@@ -154,6 +155,42 @@ def test_schedule_steps_end_the_schedules_before_the_run_and_hold_their_end_valu
         close(service)
     with pytest.raises(ConfigError, match="schedule_steps=-1: must be ≥ 0"):
         LearnerServiceConfig(schedule_steps=-1)
+
+
+def test_the_observation_normaliser_holds_after_obs_norm_steps_and_the_returns_keep_going(
+        tmp_path):
+    from tests.test_compiled import reply
+    from tests.test_learner import fragments_and_model
+    from tpdeb.protocol import Moments
+
+    fragments, _ = fragments_and_model(n=12, seed=5)
+    service, _ = service_for(tmp_path, spec=spec_for(obs_dim=3, act_dim=1), compile="off",
+                             obs_norm_steps=1000)
+    obs, ret = service.model.obs_rms, service.model.ret_rms
+
+    def train(step: int, seed: int) -> None:
+        service.global_step = step
+        batch = reply(fragments, seed)
+        batch.obs_moments = Moments(64.0, np.full(3, float(seed)), np.ones(3))
+        batch.ret_moments = Moments(64.0, np.array(float(seed)), np.array(1.0))
+        service.train_on(batch)
+
+    try:
+        train(500, 1)
+        assert (float(obs.count), float(ret.count)) == (64.0, 64.0)
+        train(999, 2)  # still before obs_norm_steps
+        held = (float(obs.count), obs.mean.clone(), obs.m2.clone())
+        assert held[0] == 128.0
+        for seed in (3, 4):
+            train(1000 + seed, seed)  # from obs_norm_steps on: held; the returns' still merge
+        assert float(obs.count) == held[0]
+        np.testing.assert_array_equal(obs.mean, held[1])
+        np.testing.assert_array_equal(obs.m2, held[2])
+        assert float(ret.count) == 256.0
+    finally:
+        close(service)
+    with pytest.raises(ConfigError, match="obs_norm_steps=-5: must be ≥ 0"):
+        LearnerServiceConfig(obs_norm_steps=-5)
 
 
 def test_cluster_stops_on_time_and_exits_0(procs, tmp_path):

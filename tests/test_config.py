@@ -217,3 +217,26 @@ def test_a_replay_ratio_band_reaches_the_limiter():
     assert fixed["max_samples_per_insert"] == fixed["samples_per_insert"] == 16.0
     band = parse(["--max-replay-ratio", "48"]).rate_limiter().stats()
     assert (band["samples_per_insert"], band["max_samples_per_insert"]) == (16.0, 48.0)
+
+
+def test_shared_memory_is_for_the_replay_the_learner_and_the_router_never_the_actors():
+    import json
+
+    from tpdeb.services.config.service import (
+        ActorServiceConfig,
+        EvaluatorServiceConfig,
+        LearnerServiceConfig,
+        RouterConfig,
+    )
+    from tpdeb.services.net.session import zenoh_config
+
+    for cls in (ReplayServiceConfig, LearnerServiceConfig, RouterConfig):
+        assert cls().shared_memory is True, cls
+        assert cls(shared_memory=False).shared_memory is False
+    for cls in (ActorServiceConfig, EvaluatorServiceConfig):
+        assert not hasattr(cls(), "shared_memory"), cls  # no setting that could turn it on
+    for on in (False, True):
+        conf = zenoh_config("client", [], ["tcp/127.0.0.1:7447"], shared_memory=on)
+        assert json.loads(conf.get_json("transport/shared_memory/enabled")) is on
+    assert json.loads(zenoh_config("client", [], []).get_json(
+        "transport/shared_memory/enabled")) is False  # off unless asked for

@@ -179,6 +179,10 @@ def test_cluster_learns_inverted_pendulum(procs, tmp_path):
                 "actor/param_version_lag", "perf/update_ms"):
         assert key in keys, key
     assert max(r["global_step"] for r in rows) >= 100000
+    # the replay and the learner share this host: batches come through shared memory
+    shared = [r["perf/sample_replies_shared_memory"] for r in rows
+              if "perf/sample_replies_shared_memory" in r]
+    assert shared and min(shared) == 1.0, shared
     assert list(run_dir.glob("events.out.tfevents.*"))
     assert 'env_id = "InvertedPendulum-v5"' in (run_dir / "config.toml").read_text()
     assert list((run_dir / "checkpoints").glob("final_*.pt"))

@@ -183,8 +183,19 @@ class Update:
     def __call__(self, state: State, batch: Batch, norm: torch.Tensor) -> torch.Tensor:
         """L's gradient with respect to the parameters, its norm clipped, Adam, the log-std
         ceiling, the soft target update, the KL coefficient's adaptation, the metrics added to
-        their sums. Returns the new priorities of the batch's fragments."""
-        if torch.compiler.is_compiling():
+        their sums. Returns the new priorities of the batch's fragments. Eager."""
+        return self.update(state, batch, norm, traced=False)
+
+    @torch.no_grad()
+    def traced(self, state: State, batch: Batch, norm: torch.Tensor) -> torch.Tensor:
+        """The same update in the form torch.compile traces (services/compiled.py). Which form
+        runs is fixed by the entry point, not by `torch.compiler.is_compiling()`: that flag is
+        the process's, so an eager update would read it as set while another thread compiles."""
+        return self.update(state, batch, norm, traced=True)
+
+    def update(self, state: State, batch: Batch, norm: torch.Tensor,
+               traced: bool) -> torch.Tensor:
+        if traced:
             # traced as a function of the parameters: one graph holds the forward, the backward
             # and the step
             def total(params):
@@ -201,7 +212,7 @@ class Update:
             grads = list(torch.autograd.grad(total, state.params))
         if self.reduce is not None:
             self.reduce(grads, metrics)
-        self.apply(state, grads, metrics)
+        self.apply(state, grads, metrics, traced)
         return priorities
 
     def forward(self, state: State, b: Batch, norm: torch.Tensor):
@@ -286,18 +297,18 @@ class Update:
             ((ratio - 1.0) - terms.log_ratio).mean(),
             ((ratio - 1.0).abs() > cfg.clip_coef).float().mean(), explained, target_clipped])
 
-    def apply(self, state: State, grads: list[torch.Tensor], metrics: torch.Tensor) -> None:
+    def apply(self, state: State, grads: list[torch.Tensor], metrics: torch.Tensor,
+              traced: bool) -> None:
         cfg = self.config
         grad_norm = torch.nn.utils.get_total_norm(grads)
         torch._foreach_mul_(grads, torch.clamp(cfg.max_grad_norm / (grad_norm + 1e-6), max=1.0))
-        compiling = torch.compiler.is_compiling()
-        if not compiling:  # the clipped gradients where autograd would leave them, to inspect
+        if not traced:  # the clipped gradients where autograd would leave them, to inspect
             for p, g in zip(state.params, grads, strict=True):
                 p.grad = g
         # Compiled on the CPU, the single-tensor form, which the compiler fuses with the rest
         # (the fused kernel is opaque to it); eager, fused on the CPU; capturable on a GPU.
         on_cpu = self.device_type == "cpu"
-        kernel = ({"foreach": False, "fused": not compiling} if on_cpu
+        kernel = ({"foreach": False, "fused": not traced} if on_cpu
                   else {"foreach": True, "fused": False})
         adam(state.params, grads, state.exp_avgs, state.exp_avg_sqs, [], state.steps,
              capturable=not on_cpu, **kernel, amsgrad=False, beta1=ADAM_BETAS[0],

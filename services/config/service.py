@@ -97,7 +97,21 @@ class NetConfig:
 
 
 @dataclass
-class RouterConfig(NetConfig):
+class SharedMemoryConfig:
+    """Shared memory between the processes of one host that may use it."""
+
+    SECTION = "net"
+
+    shared_memory: bool = True
+    """carry large messages (sample replies, parameters) between this process and the replay,
+    learner or router on the same host through Zenoh's shared memory instead of TCP; each link
+    negotiates it, so processes on other hosts, or in containers that do not share /dev/shm,
+    get TCP. Actors never use it: their data crosses the network path (and the link shim) as it
+    would between hosts"""
+
+
+@dataclass
+class RouterConfig(SharedMemoryConfig, NetConfig):
     """The router's settings: the network's and who may use it."""
 
     SECTION = "router"
@@ -130,7 +144,7 @@ class RouterConfig(NetConfig):
 
 
 @dataclass
-class ReplayServiceConfig(NetConfig, SamplingConfig):
+class ReplayServiceConfig(SharedMemoryConfig, NetConfig, SamplingConfig):
     """The replay server's settings: the network's, the replay's and its durability."""
 
     SECTION = "replay"
@@ -177,7 +191,7 @@ class ReplayServiceConfig(NetConfig, SamplingConfig):
 
 
 @dataclass
-class LearnerServiceConfig(NetConfig, LearningConfig):
+class LearnerServiceConfig(SharedMemoryConfig, NetConfig, LearningConfig):
     """The learner's settings: the network's, the training's and its checkpoints."""
 
     SECTION = "learner"

@@ -278,6 +278,10 @@ class LearnerSettings:
     before the run's own end (0: the run's steps or seconds, whichever is further along); the
     rest of the run trains at the end values (a clock budget longer than the steps a preset
     was tuned for)"""
+    obs_norm_steps: int = 0
+    """env steps after which the observation normaliser holds its moments (0: it takes in every
+    batch's observations for the whole run); the policy then learns on inputs that no longer
+    shift under it as the states it visits change"""
     compile: str = "auto"
     """auto: the update runs eagerly from the first batch while torch.compile prepares it in
     the background (the cache under ~/.cache/tpdeb makes later starts quick), then runs
@@ -309,6 +313,8 @@ class LearnerSettings:
             (self.keep_checkpoints >= 1, "keep_checkpoints", "must be ≥ 1"),
             (self.schedule_steps >= 0, "schedule_steps",
              "must be ≥ 0 (0: the schedules follow the run's own budget)"),
+            (self.obs_norm_steps >= 0, "obs_norm_steps",
+             "must be ≥ 0 (0: the normaliser follows the whole run)"),
             (1 <= self.learners <= 1024, "learners", "must be in [1, 1024]"),
             (bool(self.resume.strip()), "resume", "use auto, never or the path of a checkpoint"),
             (check_device_setting(self.device) is None, "device",

@@ -37,13 +37,17 @@ def _match(pattern: list[str], key: list[str]) -> bool:
 
 
 class _Bytes:
-    """What `sample.payload` is to the services: something with `to_bytes()`."""
+    """What `sample.payload` is to the services: something with `to_bytes()` (and `as_shm()`,
+    None: nothing in one process goes through shared memory)."""
 
     def __init__(self, data: bytes):
         self._data = bytes(data)
 
     def to_bytes(self) -> bytes:
         return self._data
+
+    def as_shm(self) -> None:
+        return None
 
 
 class MemorySample:

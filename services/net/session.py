@@ -50,7 +50,7 @@ def declare_publisher(session, topic: str, key: str):
 
 def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeout_s: float = 60.0,
                  lease_ms: int = 10_000, tcp_buffer_bytes: int = 0,
-                 security: Security | None = None):
+                 security: Security | None = None, shared_memory: bool = False):
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps(mode))
     conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
@@ -60,9 +60,11 @@ def zenoh_config(mode: str, listen: list[str], connect: list[str], connect_timeo
     conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close",
                       json.dumps(BLOCK_WAIT_BEFORE_CLOSE_MS * 1000))  # microseconds
     conf.insert_json5("transport/link/tx/lease", json.dumps(lease_ms))
-    # Shared memory would carry payloads between processes of one host around the TCP link,
-    # past the link shim: every byte must cross the network path it would cross between hosts.
-    conf.insert_json5("transport/shared_memory/enabled", "false")
+    # Shared memory carries messages over 3 KB between processes of one host around the TCP
+    # link (Zenoh's transport optimisation, negotiated per link): for the replay, the learner
+    # and the router where they share a host; never for actors, whose every byte must cross
+    # the network path (and the link shim) it would cross between hosts.
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory))
     if tcp_buffer_bytes:
         # On a throttled link the kernel's autotuned send buffer (MBs on loopback) would queue
         # seconds of data ahead of acks and keep-alives; a small one keeps the queue in Zenoh,
@@ -111,7 +113,8 @@ def check_endpoints(name: str, endpoints: list[str]) -> None:
 
 def open_session(mode: str, listen: list[str], connect: list[str],
                  connect_timeout_s: float = 60.0, tcp_buffer_bytes: int = 0,
-                 security: Security | None = None) -> zenoh.Session:
+                 security: Security | None = None,
+                 shared_memory: bool = False) -> zenoh.Session:
     """Open a session, turning Zenoh's errors into one line a user can act on. A client waits
     up to `connect_timeout_s` for its router (install signal handlers after this returns)."""
     check_endpoints("listen", listen)
@@ -121,10 +124,12 @@ def open_session(mode: str, listen: list[str], connect: list[str],
         if not connect:
             raise ConfigError("a client session needs a router to connect to: pass --connect "
                               "PROTO/HOST:PORT, e.g. tcp/127.0.0.1:7447")
-        return _open_client(connect, connect_timeout_s, tcp_buffer_bytes, security)
+        return _open_client(connect, connect_timeout_s, tcp_buffer_bytes, security,
+                            shared_memory)
     try:
         return zenoh.open(zenoh_config(mode, listen, connect, connect_timeout_s,
-                                       tcp_buffer_bytes=tcp_buffer_bytes, security=security))
+                                       tcp_buffer_bytes=tcp_buffer_bytes, security=security,
+                                       shared_memory=shared_memory))
     except zenoh.ZError as exc:
         text = str(exc)
         if "TLS" in text and any(e.startswith("tls/") for e in listen):
@@ -147,7 +152,7 @@ def _zenoh_reason(text: str) -> str:
 
 
 def _open_client(connect: list[str], connect_timeout_s: float, tcp_buffer_bytes: int,
-                 security: Security) -> zenoh.Session:
+                 security: Security, shared_memory: bool) -> zenoh.Session:
     """Wait for a router to accept connections (it may start after us), then open the session.
     Zenoh answers a refused handshake (bad credentials, an untrusted certificate, TLS on one
     side only) by retrying until its timeout and a generic error, so the link is checked here
@@ -163,7 +168,8 @@ def _open_client(connect: list[str], connect_timeout_s: float, tcp_buffer_bytes:
         attempt_s = max(0.5, min(deadline - time.monotonic(), REFUSED_AFTER_S))
         try:
             return zenoh.open(zenoh_config("client", [], connect, attempt_s,
-                                           tcp_buffer_bytes=tcp_buffer_bytes, security=security))
+                                           tcp_buffer_bytes=tcp_buffer_bytes, security=security,
+                                           shared_memory=shared_memory))
         except zenoh.ZError:
             pass
         up = [e for e in connect if probe_endpoint(e, security, PROBE_TIMEOUT_S) == "up"]
@@ -255,9 +261,11 @@ def _speaks_tls(endpoint: str) -> bool:
 
 
 def open_for(config, mode: str = "client") -> zenoh.Session:
-    """A service's session from its config's listen/connect endpoints and security settings."""
+    """A service's session from its config's listen/connect endpoints, security settings and,
+    where it has the setting (not an actor's), shared memory."""
     return open_session(mode, list(config.listen), list(config.connect), config.connect_timeout_s,
-                        config.tcp_buffer_bytes, security_of(config))
+                        config.tcp_buffer_bytes, security_of(config),
+                        getattr(config, "shared_memory", False))
 
 
 def close_session(session, prog: str) -> None:
