@@ -231,8 +231,8 @@ def test_shared_memory_is_for_the_replay_the_learner_and_the_router_never_the_ac
     from tpdeb.services.net.session import zenoh_config
 
     for cls in (ReplayServiceConfig, LearnerServiceConfig, RouterConfig):
-        assert cls().shared_memory is True, cls
-        assert cls(shared_memory=False).shared_memory is False
+        assert cls().shared_memory is False, cls  # off unless asked for
+        assert cls(shared_memory=True).shared_memory is True
     for cls in (ActorServiceConfig, EvaluatorServiceConfig):
         assert not hasattr(cls(), "shared_memory"), cls  # no setting that could turn it on
     for on in (False, True):
