@@ -229,7 +229,9 @@ def test_cluster_behind_a_throttled_link_reports_what_crossed_it(procs, tmp_path
     assert link[-1]["link/up_bytes_per_env_step"] > 20
     shared = [r["perf/sample_replies_shared_memory"] for r in rows
               if "perf/sample_replies_shared_memory" in r]
-    assert shared and min(shared) == 1.0, shared  # while the batches came through it
+    # while the batches came through it (the first ones may cross before the link's shared
+    # memory is set up: lazily, at its first large message)
+    assert shared and statistics.median(shared) == 1.0 and shared[-1] == 1.0, shared
     assert "⇄" in (run_dir / "logs" / "link.log").read_text()
 
 
