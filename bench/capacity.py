@@ -277,6 +277,7 @@ def grown(rows: list[dict], hidden: str) -> dict:
         growth.observe(1.0 / by_size[growth.size]["updates_per_s"], 0.0)
     return by_size[growth.size if growth.size in by_size else growth.last[0]]
 
+
 def acting_rates(args) -> dict[str, dict]:
     """Per task: env steps/s of one actor (4 envs, the policy in numpy, one core), and the
     preset's network and replay ratio."""

@@ -162,6 +162,11 @@ class LearnerService:
         """What the fetchers ask for: the configured batch, or the size batch growth holds."""
         return self.growth.size if self.growth is not None else self.config.batch_fragments
 
+    @property
+    def run_step(self) -> int:
+        """The run's env steps as the settings that follow them read it: rank 0's in a group."""
+        return self.global_step if self.agreed is None else self.agreed.global_step
+
     def _writers(self) -> None:
         """The run dir's writers, each of which a full disk costs writes, not the run."""
         self.metrics = MetricsWriter(self.run_dir, log,
@@ -548,11 +553,9 @@ class LearnerService:
         cfg = self.config
         if self.agreed is None:  # alone: the moments this batch's reply carries
             parts = ([batch.obs_moments], [batch.ret_moments])
-            step = self.global_step
         else:  # in a group: every rank's, in rank order, the same on every rank
             parts = (self.agreed.obs, self.agreed.ret)
-            step = self.agreed.global_step
-        if cfg.obs_norm_steps and step >= cfg.obs_norm_steps:
+        if cfg.obs_norm_steps and self.run_step >= cfg.obs_norm_steps:
             parts = ([], parts[1])  # the observation normaliser holds from here on
         for rms, moments in zip((self.model.obs_rms, self.model.ret_rms), parts, strict=True):
             for part in moments:
@@ -637,10 +640,9 @@ class LearnerService:
         in a group, another rank's: `every_rank` false) could not be prepared: a group's
         ranks must run the same code at every update to stay bit for bit equal."""
         self.compiled = True
-        if every_rank:
-            if self.compiler.install():
-                return
-        else:
+        if every_rank and self.compiler.install():
+            return
+        if not every_rank:
             if self.compiler.thread is not None:
                 self.compiler.thread.join()
             log.warning("another learner rank could not compile the update; the group goes "
@@ -679,8 +681,7 @@ class LearnerService:
         """The learning rate and the log-std ceiling where they are annealed, at the run's
         progress (the steps' or the seconds', whichever is further along, or schedule_steps'
         where they come first)."""
-        cfg, agreed = self.config, self.agreed
-        step = self.global_step if agreed is None else agreed.global_step  # rank 0's, in a group
+        cfg, agreed, step = self.config, self.agreed, self.run_step
         progress = (self.budget.progress(step) if agreed is None
                     else self.budget.progress_at(step, agreed.elapsed_s))
         if cfg.schedule_steps > 0:
