@@ -21,7 +21,7 @@ import sys
 from pathlib import Path
 
 import provenance
-from gpu import alternated, cluster_run
+from gpu import alternated, alternation_arguments, cluster_run
 from runs import save_result
 
 OUT = Path(__file__).resolve().parents[1] / "bench" / "out" / "ranks_compile"
@@ -30,11 +30,7 @@ GROUP = {"shards": 2, "learners": 2}
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--env-id", default="HalfCheetah-v5", help="the cluster's task")
-    parser.add_argument("--cluster-seconds", type=float, default=90.0,
-                        help="training seconds of each cluster run")
-    parser.add_argument("--pairs", type=int, default=2, help="cluster runs each way")
-    parser.add_argument("--seed", type=int, default=1)
+    alternation_arguments(parser, 90.0)
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
     args = parser.parse_args()
     record = provenance.start()

@@ -179,16 +179,14 @@ def cluster_pairs(args) -> dict:
 
 
 def main() -> int:
+    from gpu import alternation_arguments  # torch with it: only where this runs
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--queries", type=int, default=500, help="queries per size and mode")
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
     parser.add_argument("--cluster", action="store_true",
                         help="the default cluster with shared memory on and off, alternated")
-    parser.add_argument("--env-id", default="HalfCheetah-v5", help="the cluster's task")
-    parser.add_argument("--cluster-seconds", type=float, default=60.0,
-                        help="training seconds of each cluster run")
-    parser.add_argument("--pairs", type=int, default=2, help="cluster runs each way")
-    parser.add_argument("--seed", type=int, default=1)
+    alternation_arguments(parser, 60.0)
     parser.add_argument("--role", choices=("router", "serve"), help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
     parser.add_argument("--shm", action="store_true", help=argparse.SUPPRESS)
