@@ -175,16 +175,6 @@ def alternated(args, variants: dict[str, dict], pairs: int, actors: int, out: Pa
     return result
 
 
-def alternation_arguments(parser, cluster_seconds: float) -> None:
-    """The options of a bench that alternates cluster runs of two variants (`alternated`): the
-    task, each run's training seconds, the rounds, the seed."""
-    parser.add_argument("--env-id", default="HalfCheetah-v5", help="the cluster's task")
-    parser.add_argument("--cluster-seconds", type=float, default=cluster_seconds,
-                        help="training seconds of each cluster run")
-    parser.add_argument("--pairs", type=int, default=2, help="cluster runs each way")
-    parser.add_argument("--seed", type=int, default=1)
-
-
 def cluster_arguments(parser, cluster_seconds: float) -> None:
     """The options every bigger-machine bench shares: the learner's device, the actor counts,
     each cluster run's training seconds, the seed."""

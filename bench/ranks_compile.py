@@ -21,8 +21,8 @@ import sys
 from pathlib import Path
 
 import provenance
-from gpu import alternated, alternation_arguments, cluster_run
-from runs import save_result
+from gpu import alternated, cluster_run
+from runs import alternation_arguments, save_result
 
 OUT = Path(__file__).resolve().parents[1] / "bench" / "out" / "ranks_compile"
 GROUP = {"shards": 2, "learners": 2}

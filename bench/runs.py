@@ -130,3 +130,13 @@ def thin(curve: list[tuple[int, float]], points: int,
         chunk = curve[int(i * size):int((i + 1) * size)]
         out.append((int(chunk[-1][0]), round(statistics.mean(r for _, r in chunk), digits)))
     return out
+
+
+def alternation_arguments(parser, cluster_seconds: float) -> None:
+    """The options of a bench that alternates cluster runs of two variants (`alternated`): the
+    task, each run's training seconds, the rounds, the seed."""
+    parser.add_argument("--env-id", default="HalfCheetah-v5", help="the cluster's task")
+    parser.add_argument("--cluster-seconds", type=float, default=cluster_seconds,
+                        help="training seconds of each cluster run")
+    parser.add_argument("--pairs", type=int, default=2, help="cluster runs each way")
+    parser.add_argument("--seed", type=int, default=1)

@@ -46,7 +46,7 @@ from pathlib import Path
 
 import provenance
 import zenoh
-from runs import save_result
+from runs import alternation_arguments, save_result
 
 from tpdeb.services.launcher.plan import free_port
 from tpdeb.services.net.session import zenoh_config
@@ -179,8 +179,6 @@ def cluster_pairs(args) -> dict:
 
 
 def main() -> int:
-    from gpu import alternation_arguments  # torch with it: only where this runs
-
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--queries", type=int, default=500, help="queries per size and mode")
     parser.add_argument("--out", type=Path, help="write the figures here as JSON")
