@@ -431,6 +431,7 @@ class LearnerService:
         shards, beta, size = self.shard_set, self.beta(), self.batch_fragments
         counts, ready = shards.plan(size), []
         for _ in range(2):
+            asked_at = time.monotonic()
             asked = {shard: self._ask(self.shard_keys[shard].sample, SampleRequest(
                 request_id=request_id, batch_size=int(n_p + n_u), beta=beta,
                 num_prioritized=int(n_p))) for shard, (n_p, n_u) in enumerate(counts) if n_p + n_u}
@@ -438,7 +439,10 @@ class LearnerService:
             for shard, replies in asked.items():
                 got = self._answer(replies)
                 if got is None:
-                    shards.missed(shard)
+                    waited = time.monotonic() - asked_at
+                    if (out := shards.missed(shard, waited)) is not None:
+                        log.info(f"replay shard {shard} did not answer ({waited:.1f} s): left "
+                                 f"out of the batches for {out:.0f} s")
                 else:
                     shards.heard(shard, got)
                 if got is not None and got.ready:

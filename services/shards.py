@@ -1,18 +1,26 @@
 """The learner's side of replay shards (DESIGN §2 "Replay shards"): one batch from K replays.
 
-`ShardSet` keeps what each shard last said it holds (the view in its replies), which shards are
-down (no answer within the request timeout: left out for `retry_s`, then asked again), plans
-each batch's split (`tpdeb_core.shards.split_batch`: B_p's rows by sampling mass, B_u's by item
-count) and joins the shards' replies into the one reply a learner trains on (`join`):
+`ShardSet` keeps what each shard last said it holds (the view in its replies) and which shards
+are down, plans each batch's split (`tpdeb_core.shards.split_batch`: B_p's rows by sampling
+mass, B_u's by item count) and joins the shards' replies into the one reply a learner trains on
+(`join`):
 
 - fragments side by side (`fragments.join_batches`);
 - keys made global, key·K + shard, so that each priority finds its shard again (`route`);
 - B_p's importance weights rescaled to the union's P_min (`shards.global_weights`);
 - inserted steps summed over the shards (each shard's latest count), normaliser moments merged.
 
-A shard never heard from, back from its `retry_s`, or empty when last heard from is probed (at
+A shard never heard from, back from being left out, or empty when last heard from is probed (at
 most once per `probe_s`) with one B_u row of the batch: its reply (ready or not) says what it
 holds, and it takes its share from the next batch on.
+
+A shard that did not answer is left out for as long as the unanswered query waited (at least
+`probe_s`, at most `retry_s`): one that let a query time out would cost every batch that asks it
+the whole timeout, one that answered nothing at once (its routes being remade) costs nothing to
+ask again. A shard whose liveliness token goes is left out until it comes back, and asked again
+as soon as it does — also when it was left out for a miss: after the router hangs past its
+lease, the queries sent meanwhile end unanswered as the tokens go, and the tokens' return is
+the newer news.
 
 With one shard the learner does not use this: its requests and replies are today's.
 """
@@ -59,11 +67,17 @@ class ShardSet:
             self.inserted[shard] = max(self.inserted[shard], reply.inserted_steps)
             self.down_until[shard] = 0.0
 
-    def missed(self, shard: int) -> None:
-        """No answer from `shard` in time: down, left out until `retry_s` has passed."""
+    def missed(self, shard: int, waited_s: float) -> float | None:
+        """No answer from `shard` to a query that waited `waited_s`: down, left out for as
+        long (within [probe_s, retry_s]). Returns those seconds where it was up until now (for
+        the log: the other fetchers' misses of the same outage say nothing new)."""
+        out_s = min(max(waited_s, self.probe_s), self.retry_s)
         with self.lock:
+            now = self.clock()
+            was_up = self.down_until[shard] <= now
             self.views[shard] = None
-            self.down_until[shard] = self.clock() + self.retry_s
+            self.down_until[shard] = max(self.down_until[shard], now + out_s)
+        return out_s if was_up else None
 
     def gone(self, shard: int) -> None:
         """`shard`'s liveliness token went: left out until it is back."""
@@ -72,10 +86,11 @@ class ShardSet:
             self.down_until[shard] = math.inf
 
     def back(self, shard: int) -> None:
-        """`shard`'s token is there (again): probed from the next batch on."""
+        """`shard`'s token is there (again): probed from the next batch on — also when it was
+        left out for a miss, which the token's return is newer news than (the queries sent
+        while the router hung end unanswered when the lease runs out, as the tokens go)."""
         with self.lock:
-            if self.down_until[shard] == math.inf:
-                self.down_until[shard] = 0.0
+            self.down_until[shard] = 0.0
 
     def down(self) -> list[int]:
         with self.lock:

@@ -224,7 +224,7 @@ def test_a_shard_set_probes_splits_and_leaves_out_what_is_down():
     empty = SampleReply.not_ready(1, "rate limiter", 0, (0, 0, 0.0, 0.0))
     shards.heard(0, SampleReply.not_ready(1, "rate limiter", 40, (4, 2, 2.0, 0.5)))
     shards.heard(1, empty)
-    shards.missed(2)
+    shards.missed(2, waited_s=30.0)  # its query timed out: left out for retry_s
     plan = shards.plan(8)
     assert plan[0].sum() == 8 and not plan[1:].any()  # 1 empty, 2 down
     assert shards.down() == [2] and shards.inserted_steps == 40
@@ -240,6 +240,21 @@ def test_a_shard_set_probes_splits_and_leaves_out_what_is_down():
     assert plan[:, 0].sum() == 0 and plan.sum() == 4 and (plan[:, 1] >= 1).all()
     with pytest.raises(ValueError, match="2 or more"):
         ShardSet(1, ZETA, seed=0)
+
+
+def test_a_shard_that_answered_nothing_at_once_is_asked_again_soon():
+    """No reply at once (the routes to it being remade after the router came back) is not a
+    shard that hangs: left out for probe_s, not for the request timeout."""
+    now = [0.0]
+    shards = ShardSet(2, ZETA, seed=0, retry_s=30.0, probe_s=1.0, clock=lambda: now[0])
+    assert shards.missed(0, waited_s=0.004) == 1.0
+    assert shards.missed(1, waited_s=12.0) == 12.0
+    assert shards.missed(1, waited_s=0.01) is None  # already out (for longer): news to no one
+    assert shards.down() == [0, 1] and shards.plan(8).sum() == 0
+    now[0] = 1.5
+    assert shards.down() == [1] and shards.plan(8)[0].tolist() == [0, 8]
+    shards.back(1)  # its token came back (the router's lease renewed): asked again at once
+    assert shards.down() == []
 
 
 def test_joined_replies_are_one_batch_with_global_keys_weights_and_moments():
