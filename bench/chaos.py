@@ -5,6 +5,8 @@ audit of what the replay holds against every acknowledgement that crossed the wi
     python bench/chaos.py --minutes 3                                  # a quick check
     python bench/chaos.py --plan --seed 2                              # the schedule alone
     python bench/chaos.py --minutes 10 --shards 2 --learners 2         # replay shards, ranks
+    python bench/chaos.py --minutes 3.2 --warmup-s 45 --calm-s 20 --shards 2 --learners 2 \
+        --repeat hang:router:12       # one fault six times over (20 s calm between), judged alike
 
 The run is the default cluster (deploy/local.toml: router, replay, learner, 2 actors × 4 envs)
 on HalfCheetah-v5 with its preset, the actors behind `tpdeb-link` at an unlimited rate (so a
@@ -95,6 +97,28 @@ def schedule(seed: int, start_s: float, end_s: float, services: list[str]) -> li
             return faults
         faults.append(Fault(round(t, 1), kind, target, hold))
         t += hold + rng.uniform(*GAP_S)
+
+
+def repeated(spec: str, start_s: float, end_s: float, services: list[str]) -> list[Fault]:
+    """One fault again and again between `start_s` and `end_s` (`kind:target[:hold_s]`, e.g.
+    hang:router:12), the schedule's mean calm between them: to measure one recovery many times
+    in one run."""
+    parts = spec.split(":")
+    kind, target = (parts + ["", ""])[:2]
+    try:
+        hold_s = 0.0 if kind == "kill" else float(parts[2]) if len(parts) == 3 else HOLD_S[0]
+    except ValueError:
+        hold_s = -1.0
+    if len(parts) not in (2, 3) or kind not in KINDS or hold_s < 0 \
+            or not (target == "link" if kind == "partition" else target in services):
+        raise SystemExit(f"[chaos] --repeat {spec}: expected kind:target[:hold_s] with kind in "
+                         f"{', '.join(KINDS)}, target one of {', '.join(services)} (link for a "
+                         f"partition)")
+    faults, t = [], start_s
+    while t + hold_s <= end_s:
+        faults.append(Fault(round(t, 1), kind, target, hold_s))
+        t += hold_s + sum(GAP_S) / 2
+    return faults
 
 
 class Wire:
@@ -228,7 +252,8 @@ class Chaos:
                                      for role, n in named.items() for i in range(n)),
                          *(f"actor-{i}" for i in range(2))]
         self.window = (args.warmup_s, args.warmup_s + 60.0 * args.minutes)
-        self.faults = schedule(args.seed, *self.window, self.services)
+        self.faults = (repeated(args.repeat, *self.window, self.services) if args.repeat
+                       else schedule(args.seed, *self.window, self.services))
         self.injected: list[dict] = []
         self.stopped: int | None = None  # a pid held with SIGSTOP right now
         self.cluster: subprocess.Popen | None = None
@@ -455,6 +480,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--shards", type=int, default=1, help="replay shards (replay_shards)")
     p.add_argument("--learners", type=int, default=1, help="data-parallel learner ranks")
     p.add_argument("--out", type=Path, help="the result as JSON")
+    p.add_argument("--repeat", metavar="KIND:TARGET[:HOLD_S]",
+                   help="one fault over and over instead of the seeded schedule (e.g. "
+                        "hang:router:12)")
     p.add_argument("--plan", action="store_true", help="print the schedule and exit")
     args = p.parse_args(argv)
     if args.minutes <= 0 or args.warmup_s < 0 or args.calm_s < 0:

@@ -5,6 +5,8 @@ cluster."""
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import chaos  # noqa: E402
 
@@ -28,6 +30,18 @@ def test_the_schedule_is_seeded_spaced_and_inside_the_window():
     # half an hour holds every kind, and every service is hit
     assert {f.kind for f in faults} == set(chaos.KINDS)
     assert {f.target for f in faults} == {*SERVICES, "link"}
+
+
+def test_one_fault_repeated_fills_the_window_and_bad_specs_are_refused():
+    faults = chaos.repeated("hang:router:12", 45.0, 237.0, SERVICES)
+    assert [f.at_s for f in faults] == [45.0, 77.0, 109.0, 141.0, 173.0, 205.0]
+    assert all((f.kind, f.target, f.hold_s) == ("hang", "router", 12.0) for f in faults)
+    assert {f.hold_s for f in chaos.repeated("kill:learner", 0.0, 100.0, SERVICES)} == {0.0}
+    assert chaos.repeated("partition:link", 0.0, 60.0, SERVICES)[0].hold_s == 5.0
+    for bad in ("hang:foo:1", "partition:router", "hang:router:x", "hang", "hang:router:1:2",
+                "stop:router", "hang:link:5"):
+        with pytest.raises(SystemExit, match="expected kind:target"):
+            chaos.repeated(bad, 0.0, 60.0, SERVICES)
 
 
 def learner(t, version):
