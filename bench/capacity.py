@@ -17,9 +17,14 @@ measured on this machine with synthetic actors instead of environments.
 3. Learner update ceiling per network size (64×64, 256×256) and batch (8, 16, 32 fragments):
    the compiled update's updates/s at one torch thread, the env steps/s that feeds at the
    preset's replay ratio, and the batch growth would keep (`max_batch_fragments`).
-4. One actor's acting rate per task (4 envs, its policy in numpy, one core).
+4. Learner ranks (`--ranks 2`: data-parallel learners, `learners = N`): N processes, one torch
+   thread each, the compiled update with its gradients all-reduced over gloo as a cluster's
+   ranks run it, for each network size at the presets' batch: updates/s per rank and what the
+   group feeds (N × updates/s × batch steps ÷ the replay ratio) against N × one learner's.
+5. One actor's acting rate per task (4 envs, its policy in numpy, one core).
 
-Prints the figures and the plan (actors of each task one replay and one learner can feed);
+Prints the figures and the plan (actors of each task one replay and one learner can feed, and
+K replay shards and N learner ranks, each shard a replay's ceiling on its own core);
 writes bench/out/capacity/results.json.
 These are timings: nothing else may run meanwhile.
 """
@@ -266,6 +271,82 @@ def learner_ceilings(args) -> list[dict]:
     return rows
 
 
+def learner_rank(args) -> None:
+    """One learner rank (a child): the compiled update with the group's all-reduce, run for an
+    agreed count of updates (every rank makes the same number, or one would wait on the others'
+    all-reduce), timed; prints its updates/s."""
+    import torch
+    import torch.distributed as dist
+    from throughput import prepared_learner, preset_config, sample_batches
+
+    from tpdeb.services.ranks import Group
+
+    config = preset_config(args.env_id, 4, args.seed)
+    config.hidden_sizes = tuple(int(x) for x in args.hidden.split("x"))
+    spec, fragments, batches = sample_batches(config, count=16)
+    group = Group(args.rank, args.ranks, args.endpoint, torch.device("cpu"), 300.0)
+    try:
+        step, _, _ = prepared_learner(config, spec, fragments, batches, "cpu", 1,
+                                      group.reducer())
+        for _ in range(20):  # warm-up, and how fast the slowest rank goes
+            step()
+        started = time.perf_counter()
+        for _ in range(20):
+            step()
+        count = torch.tensor([int(args.seconds * 20 / (time.perf_counter() - started))])
+        dist.all_reduce(count, op=dist.ReduceOp.MIN)
+        started = time.perf_counter()
+        for _ in range(int(count)):
+            step()
+        elapsed = time.perf_counter() - started
+        print(json.dumps({"rank": args.rank, "updates": int(count),
+                          "updates_per_s": int(count) / elapsed}), flush=True)
+    finally:
+        group.close()
+
+
+def rank_ceilings(args) -> list[dict]:
+    """Per network size: `args.ranks` learner ranks as processes, their updates/s each and
+    what the group feeds at the preset's replay ratio."""
+    from throughput import preset_config
+
+    from tpdeb.services.launcher.plan import free_port
+
+    rows = []
+    for hidden in SIZES:
+        name = "x".join(map(str, hidden))
+        endpoint = f"127.0.0.1:{free_port()}"
+        cmd = [sys.executable, str(Path(__file__).resolve()), "--learner-rank", "--env-id",
+               args.env_id, "--seconds", str(args.seconds), "--seed", str(args.seed),
+               "--endpoint", endpoint, "--ranks", str(args.ranks), "--hidden", name]
+        procs = [subprocess.Popen([*cmd, "--rank", str(r)], cwd=ROOT, stdout=subprocess.PIPE,
+                                  stderr=subprocess.DEVNULL, text=True, start_new_session=True)
+                 for r in range(args.ranks)]
+        got = []
+        try:
+            for proc in procs:
+                stdout, _ = proc.communicate(timeout=args.seconds + 600)
+                lines = stdout.strip().splitlines()
+                if proc.returncode or not lines:
+                    raise SystemExit(f"[capacity] learner rank {len(got)} of {args.ranks} "
+                                     f"({name}) exited with {proc.returncode} and no figure")
+                got.append(json.loads(lines[-1]))
+        finally:
+            stop(procs)
+        config = preset_config(args.env_id, 4, args.seed)
+        rate = min(g["updates_per_s"] for g in got)
+        feeds = args.ranks * rate * config.batch_steps / config.replay_ratio
+        print(f"[capacity] {args.ranks} learner ranks {'×'.join(map(str, hidden))}: {rate:,.0f} "
+              f"updates/s each, feed {feeds:,.0f} env steps/s at replay ratio "
+              f"{config.replay_ratio:g}", flush=True)
+        rows.append({"hidden": "×".join(map(str, hidden)), "ranks": args.ranks,
+                     "batch_fragments": config.batch_fragments, "updates_per_s": rate,
+                     "per_rank": [g["updates_per_s"] for g in got],
+                     "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
+                     "feeds_env_steps_per_s": feeds})
+    return rows
+
+
 def grown(rows: list[dict], hidden: str) -> dict:
     """The learner row batch growth would settle on for a network: its rule
     (tpdeb_core.batch_growth) fed each batch size's measured seconds per update."""
@@ -296,14 +377,19 @@ def acting_rates(args) -> dict[str, dict]:
 
 def plan_table(result: dict) -> str:
     """Actors of each task that one replay (WAL on, the best sender count) and one learner
-    (the task's network size) can feed."""
+    (the task's network size) can feed; and, where learner ranks were timed, K replay shards
+    and N ranks (K = N: each shard one replay's ceiling, each rank its measured rate)."""
     replay = max((r["env_steps_per_s"] for r in result["ingest"] if r["persist"]), default=0)
     rows = [dict(r, batch_fragments=r.get("batch_fragments", 8)) for r in result["learner"]]
     steps = {r["hidden"]: r["updates_per_s"] * r["batch_steps"] for r in rows
              if r["batch_fragments"] == 8}  # the presets' batch
+    ranks = {r["hidden"]: r for r in result.get("ranks", [])}
+    n = next(iter(ranks.values()))["ranks"] if ranks else 0
     out = ["| task | one actor (env steps/s) | actors one replay can feed | actors one learner "
-           "can feed (its network, its replay ratio) | with batch growth (the batch it keeps) |",
-           "|---|---|---|---|---|"]
+           "can feed (its network, its replay ratio) | with batch growth (the batch it keeps) |"
+           + (f" {n} replay shards | {n} learner ranks (each rank's updates/s ÷ one "
+              "learner's) |" if n else ""),
+           "|---|---|---|---|---|" + ("---|---|" if n else "")]
     for env_id, task in result["acting"].items():
         rate, ratio = task["env_steps_per_s"], task["replay_ratio"]
         feeds = steps.get(task["hidden"], float("nan")) / ratio
@@ -311,8 +397,16 @@ def plan_table(result: dict) -> str:
             else None
         growth = (f"{kept['updates_per_s'] * kept['batch_steps'] / ratio / rate:,.1f} "
                   f"({kept['batch_fragments']})" if kept else "—")
-        out.append(f"| {env_id} | {rate:,.0f} | {replay / rate:,.1f} | {feeds / rate:,.1f} "
-                   f"({task['hidden']}, {ratio:g}) | {growth} |")
+        line = (f"| {env_id} | {rate:,.0f} | {replay / rate:,.1f} | {feeds / rate:,.1f} "
+                f"({task['hidden']}, {ratio:g}) | {growth} |")
+        if n:
+            group = ranks.get(task["hidden"])
+            one = steps.get(task["hidden"])
+            line += f" {n * replay / rate:,.1f} |" + (
+                f" {n * group['updates_per_s'] * group['batch_steps'] / ratio / rate:,.1f} "
+                f"({group['updates_per_s'] * group['batch_steps'] / one:.2f}) |"
+                if group and one else " — |")
+        out.append(line)
     return "\n".join(out)
 
 
@@ -335,10 +429,17 @@ def combine(results: list[dict]) -> dict:
     learner = [dict(row, batch_fragments=size(row)[1], updates_per_s=median(
         x["updates_per_s"] for r in results for x in r["learner"] if size(x) == size(row)))
         for row in results[0]["learner"]]
+    timed = [r for r in results if r.get("ranks")]  # runs that timed learner ranks
+    ranks = [dict(row, updates_per_s=median(
+        x["updates_per_s"] for r in timed for x in r["ranks"] if x["hidden"] == row["hidden"]),
+        runs=[x["updates_per_s"] for r in timed for x in r["ranks"]
+              if x["hidden"] == row["hidden"]])
+        for row in timed[0]["ranks"]] if timed else []
     acting = {env_id: dict(task, env_steps_per_s=median(
         r["acting"][env_id]["env_steps_per_s"] for r in results))
         for env_id, task in results[0]["acting"].items()}
-    return {"runs": len(results), "ingest": ingest, "learner": learner, "acting": acting,
+    return {"runs": len(results), "ingest": ingest, "learner": learner, "ranks": ranks,
+            "acting": acting,
             "forwarding": {"per_s": median(forwarding), "runs": forwarding}}
 
 
@@ -354,6 +455,10 @@ def report(paths: list[str]) -> None:
     for row in combined["learner"]:
         print(f"learner {row['hidden']}, batch {row['batch_fragments']}: median "
               f"{row['updates_per_s']:,.0f} updates/s")
+    for row in combined["ranks"]:
+        print(f"{row['ranks']} learner ranks {row['hidden']}: median "
+              f"{row['updates_per_s']:,.0f} updates/s each (runs: "
+              f"{', '.join(f'{x:,.0f}' for x in row['runs'])})")
     print()
     print(plan_table(combined))
 
@@ -371,6 +476,8 @@ def main() -> None:
     parser.add_argument("--batches", type=int, nargs="+", default=[8, 16, 32],
                         help="learner batch sizes (fragments) timed per network: what batch "
                         "growth (max_batch_fragments) would pick from")
+    parser.add_argument("--ranks", type=int, default=2,
+                        help="learner ranks timed together (0: none); at most the cores")
     parser.add_argument("--report", nargs="+", metavar="RESULTS",
                         help="no runs: medians over these results.json files and the plan")
     # the children's roles
@@ -379,7 +486,14 @@ def main() -> None:
     parser.add_argument("--no-acks", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--actor-id", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--endpoint", help=argparse.SUPPRESS)
+    parser.add_argument("--learner-rank", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--rank", type=int, default=0, help=argparse.SUPPRESS)
+    parser.add_argument("--hidden", default="64x64", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.ranks < 0 or args.ranks > (os.cpu_count() or 1):
+        parser.error(f"--ranks {args.ranks}: from 0 to the machine's {os.cpu_count()} cores")
+    if args.learner_rank:
+        return learner_rank(args)
     if args.synthetic_actor:
         return synthetic_actor(args)
     if args.counting_subscriber:
@@ -395,7 +509,9 @@ def main() -> None:
               "ingest": [ingest(args, persist, n) for persist in (True, False)
                          for n in args.actors],
               "forwarding": [forwarding(args, n) for n in args.actors],
-              "learner": learner_ceilings(args), "acting": acting_rates(args)}
+              "learner": learner_ceilings(args),
+              "ranks": rank_ceilings(args) if args.ranks > 1 else [],
+              "acting": acting_rates(args)}
     result["plan_markdown"] = plan_table(result)
     provenance.stamp(result, record)
     (OUT / "results.json").write_text(json.dumps(result, indent=1))

@@ -215,15 +215,16 @@ def bench_floor(config: TrainConfig, spec, batches, seconds: float) -> dict:
     return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed}
 
 
-def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float,
-                  device: str = "cpu", threads: int | None = None) -> dict:
-    """The learner service's work per update, without the network: the normaliser's map, the
-    update (compiled, as the service runs it once its compile is ready) and the new
-    priorities copied out, on batches placed as the fetch threads place them; at the learner's
-    thread count unless `threads` says otherwise."""
+def prepared_learner(config: TrainConfig, spec, fragments, batches, device: str = "cpu",
+                     threads: int | None = None, reduce=None) -> tuple:
+    """(step, compile seconds, pinned): the learner service's work per update as `step()`,
+    compiled as the service runs it once its compile is ready. `reduce`: a learner rank's
+    all-reduce hook (services.ranks.Group.reducer())."""
     torch.set_num_threads(threads or config.torch_threads)
     torch.manual_seed(config.seed)
     learner = Learner(model_for(spec), config.loss_config(), device)
+    if reduce is not None:
+        learner.rules.reduce = reduce
     for fragment in fragments:  # realistic normaliser statistics
         learner.observe(fragment)
     b = config.batch_fragments
@@ -242,9 +243,19 @@ def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float,
     def step():  # the priorities reach the host a step later, as in the service
         learner.update(next(cycle), learner.normaliser()).to("cpu", non_blocking=pin)
 
+    return step, compile_s, pin
+
+
+def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float,
+                  device: str = "cpu", threads: int | None = None) -> dict:
+    """The learner service's work per update, without the network: the normaliser's map, the
+    update (compiled, as the service runs it once its compile is ready) and the new
+    priorities copied out, on batches placed as the fetch threads place them; at the learner's
+    thread count unless `threads` says otherwise."""
+    step, compile_s, pin = prepared_learner(config, spec, fragments, batches, device, threads)
     calls, elapsed = timed_loop(step, seconds)
     if pin:
-        torch.cuda.synchronize(learner.device)
+        torch.cuda.synchronize(device)
         elapsed = max(elapsed, 1e-9)
     return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed,
             "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,

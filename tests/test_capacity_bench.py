@@ -46,6 +46,23 @@ def test_the_plan_says_which_batch_growth_would_keep_and_what_it_feeds():
     assert row == "| HalfCheetah-v5 | 5,000 | 17.6 | 1.3 (64×64, 16) | 1.9 (16) |"
 
 
+def test_the_plan_adds_shards_and_learner_ranks_where_ranks_were_timed():
+    timed = [run([88e3], 90e3, 9e3, 220, 5e3) for _ in range(2)]
+    for result, rate in zip(timed, (170.0, 190.0), strict=True):
+        result["ranks"] = [{"hidden": "64×64", "ranks": 2, "batch_fragments": 8,
+                            "updates_per_s": rate, "batch_steps": 512}]
+    combined = capacity.combine([*timed, run([88e3], 90e3, 9e3, 220, 5e3)])  # one without
+    assert combined["ranks"][0]["updates_per_s"] == 180.0
+    assert combined["ranks"][0]["runs"] == [170.0, 190.0]
+    header, _, row = capacity.plan_table(combined).splitlines()
+    assert "2 replay shards | 2 learner ranks" in header
+    # 2 shards: 2 × 88,000 / 5,000 = 35.2; 2 ranks: 2 × 180 × 512 / 16 / 5,000 = 2.3, each
+    # rank 180 / 220 = 0.82 of one learner
+    assert row.endswith("| 35.2 | 2.3 (0.82) |")
+    assert "shards" not in capacity.plan_table(capacity.combine([run([88e3], 90e3, 9e3, 220,
+                                                                      5e3)]))
+
+
 def test_services_are_named_from_their_command_lines():
     import procfs
 
