@@ -312,6 +312,7 @@ def rank_ceilings(args) -> list[dict]:
 
     from tpdeb.services.launcher.plan import free_port
 
+    config = preset_config(args.env_id, 4, args.seed)
     rows = []
     for hidden in SIZES:
         name = "x".join(map(str, hidden))
@@ -333,13 +334,12 @@ def rank_ceilings(args) -> list[dict]:
                 got.append(json.loads(lines[-1]))
         finally:
             stop(procs)
-        config = preset_config(args.env_id, 4, args.seed)
         rate = min(g["updates_per_s"] for g in got)
         feeds = args.ranks * rate * config.batch_steps / config.replay_ratio
-        print(f"[capacity] {args.ranks} learner ranks {'×'.join(map(str, hidden))}: {rate:,.0f} "
+        print(f"[capacity] {args.ranks} learner ranks {name.replace('x', '×')}: {rate:,.0f} "
               f"updates/s each, feed {feeds:,.0f} env steps/s at replay ratio "
               f"{config.replay_ratio:g}", flush=True)
-        rows.append({"hidden": "×".join(map(str, hidden)), "ranks": args.ranks,
+        rows.append({"hidden": name.replace("x", "×"), "ranks": args.ranks,
                      "batch_fragments": config.batch_fragments, "updates_per_s": rate,
                      "per_rank": [g["updates_per_s"] for g in got],
                      "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
@@ -430,11 +430,11 @@ def combine(results: list[dict]) -> dict:
         x["updates_per_s"] for r in results for x in r["learner"] if size(x) == size(row)))
         for row in results[0]["learner"]]
     timed = [r for r in results if r.get("ranks")]  # runs that timed learner ranks
-    ranks = [dict(row, updates_per_s=median(
-        x["updates_per_s"] for r in timed for x in r["ranks"] if x["hidden"] == row["hidden"]),
-        runs=[x["updates_per_s"] for r in timed for x in r["ranks"]
-              if x["hidden"] == row["hidden"]])
-        for row in timed[0]["ranks"]] if timed else []
+    ranks = []
+    for row in timed[0]["ranks"] if timed else []:
+        runs = [x["updates_per_s"] for r in timed for x in r["ranks"]
+                if x["hidden"] == row["hidden"]]
+        ranks.append(dict(row, updates_per_s=median(runs), runs=runs))
     acting = {env_id: dict(task, env_steps_per_s=median(
         r["acting"][env_id]["env_steps_per_s"] for r in results))
         for env_id, task in results[0]["acting"].items()}
@@ -477,7 +477,7 @@ def main() -> None:
                         help="learner batch sizes (fragments) timed per network: what batch "
                         "growth (max_batch_fragments) would pick from")
     parser.add_argument("--ranks", type=int, default=2,
-                        help="learner ranks timed together (0: none); at most the cores")
+                        help="learner ranks timed together (0: none); 2 up to the cores")
     parser.add_argument("--report", nargs="+", metavar="RESULTS",
                         help="no runs: medians over these results.json files and the plan")
     # the children's roles
@@ -490,8 +490,9 @@ def main() -> None:
     parser.add_argument("--rank", type=int, default=0, help=argparse.SUPPRESS)
     parser.add_argument("--hidden", default="64x64", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.ranks < 0 or args.ranks > (os.cpu_count() or 1):
-        parser.error(f"--ranks {args.ranks}: from 0 to the machine's {os.cpu_count()} cores")
+    if args.ranks not in (0, *range(2, (os.cpu_count() or 1) + 1)):
+        parser.error(f"--ranks {args.ranks}: 0 (no ranks timed) or from 2 to the machine's "
+                     f"{os.cpu_count()} cores")
     if args.learner_rank:
         return learner_rank(args)
     if args.synthetic_actor:

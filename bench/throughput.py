@@ -217,7 +217,8 @@ def bench_floor(config: TrainConfig, spec, batches, seconds: float) -> dict:
 
 def prepared_learner(config: TrainConfig, spec, fragments, batches, device: str = "cpu",
                      threads: int | None = None, reduce=None) -> tuple:
-    """(step, compile seconds, pinned): the learner service's work per update as `step()`,
+    """(step, compile seconds, the learner's device): the learner service's work per update as
+    `step()`,
     compiled as the service runs it once its compile is ready. `reduce`: a learner rank's
     all-reduce hook (services.ranks.Group.reducer())."""
     torch.set_num_threads(threads or config.torch_threads)
@@ -243,7 +244,7 @@ def prepared_learner(config: TrainConfig, spec, fragments, batches, device: str 
     def step():  # the priorities reach the host a step later, as in the service
         learner.update(next(cycle), learner.normaliser()).to("cpu", non_blocking=pin)
 
-    return step, compile_s, pin
+    return step, compile_s, learner.device
 
 
 def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float,
@@ -252,10 +253,10 @@ def bench_learner(config: TrainConfig, spec, fragments, batches, seconds: float,
     update (compiled, as the service runs it once its compile is ready) and the new
     priorities copied out, on batches placed as the fetch threads place them; at the learner's
     thread count unless `threads` says otherwise."""
-    step, compile_s, pin = prepared_learner(config, spec, fragments, batches, device, threads)
+    step, compile_s, on = prepared_learner(config, spec, fragments, batches, device, threads)
     calls, elapsed = timed_loop(step, seconds)
-    if pin:
-        torch.cuda.synchronize(device)
+    if on.type != "cpu":
+        torch.cuda.synchronize(on)
         elapsed = max(elapsed, 1e-9)
     return {"update_ms": 1e3 * elapsed / calls, "updates_per_s": calls / elapsed,
             "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,
