@@ -315,7 +315,7 @@ def rank_ceilings(args) -> list[dict]:
     config = preset_config(args.env_id, 4, args.seed)
     rows = []
     for hidden in SIZES:
-        name = "x".join(map(str, hidden))
+        name, label = "x".join(map(str, hidden)), "×".join(map(str, hidden))
         endpoint = f"127.0.0.1:{free_port()}"
         cmd = [sys.executable, str(Path(__file__).resolve()), "--learner-rank", "--env-id",
                args.env_id, "--seconds", str(args.seconds), "--seed", str(args.seed),
@@ -336,10 +336,10 @@ def rank_ceilings(args) -> list[dict]:
             stop(procs)
         rate = min(g["updates_per_s"] for g in got)
         feeds = args.ranks * rate * config.batch_steps / config.replay_ratio
-        print(f"[capacity] {args.ranks} learner ranks {name.replace('x', '×')}: {rate:,.0f} "
+        print(f"[capacity] {args.ranks} learner ranks {label}: {rate:,.0f} "
               f"updates/s each, feed {feeds:,.0f} env steps/s at replay ratio "
               f"{config.replay_ratio:g}", flush=True)
-        rows.append({"hidden": name.replace("x", "×"), "ranks": args.ranks,
+        rows.append({"hidden": label, "ranks": args.ranks,
                      "batch_fragments": config.batch_fragments, "updates_per_s": rate,
                      "per_rank": [g["updates_per_s"] for g in got],
                      "batch_steps": config.batch_steps, "replay_ratio": config.replay_ratio,

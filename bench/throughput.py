@@ -218,8 +218,7 @@ def bench_floor(config: TrainConfig, spec, batches, seconds: float) -> dict:
 def prepared_learner(config: TrainConfig, spec, fragments, batches, device: str = "cpu",
                      threads: int | None = None, reduce=None) -> tuple:
     """(step, compile seconds, the learner's device): the learner service's work per update as
-    `step()`,
-    compiled as the service runs it once its compile is ready. `reduce`: a learner rank's
+    `step()`, compiled as the service runs it once its compile is ready. `reduce`: a learner rank's
     all-reduce hook (services.ranks.Group.reducer())."""
     torch.set_num_threads(threads or config.torch_threads)
     torch.manual_seed(config.seed)
