@@ -61,7 +61,7 @@ from tpdeb.services.policy_file import POLICY_FILE, acting_arrays, policy_bytes,
 from tpdeb.services.process import StopSignal, configure, fail
 from tpdeb.services.ranks import Agreement, Group, learner_tensors, rank_device
 from tpdeb.services.seeding import seed_everything
-from tpdeb.services.shards import ShardSet
+from tpdeb.services.shards import Gathered, ShardSet
 from tpdeb.services.store.checkpoint import (
     BEST_CHECKPOINT,
     FINAL,
@@ -400,9 +400,12 @@ class LearnerService:
         self.global_step = max(self.global_step, got.inserted_steps)
         return got if got.ready else None
 
-    def _ask(self, key: str, request: SampleRequest):
-        """A sample query sent (its replies come through the handler returned)."""
-        return self.session.get(key, payload=encode(request),
+    def _ask(self, key: str, request: SampleRequest, gathered: Gathered | None = None):
+        """A sample query sent: its replies come through the handler returned, or are
+        `gathered` (then nothing is returned)."""
+        handler = None if gathered is None else zenoh.handlers.Callback(gathered.add,
+                                                                         gathered.end)
+        return self.session.get(key, handler, payload=encode(request),
                                 timeout=self.config.request_timeout_s,
                                 cancellation_token=self.fetch_cancel)
 
@@ -431,15 +434,18 @@ class LearnerService:
         shards, beta, size = self.shard_set, self.beta(), self.batch_fragments
         counts, ready = shards.plan(size), []
         for _ in range(2):
-            asked_at = time.monotonic()
-            asked = {shard: self._ask(self.shard_keys[shard].sample, SampleRequest(
-                request_id=request_id, batch_size=int(n_p + n_u), beta=beta,
-                num_prioritized=int(n_p))) for shard, (n_p, n_u) in enumerate(counts) if n_p + n_u}
+            asked_at, asked = time.monotonic(), {}
+            for shard, (n_p, n_u) in enumerate(counts):
+                if n_p + n_u:
+                    asked[shard] = Gathered()
+                    self._ask(self.shard_keys[shard].sample, SampleRequest(
+                        request_id=request_id, batch_size=int(n_p + n_u), beta=beta,
+                        num_prioritized=int(n_p)), asked[shard])
             missing = 0
-            for shard, replies in asked.items():
-                got = self._answer(replies)
-                if got is None:
-                    waited = time.monotonic() - asked_at
+            for shard, query in asked.items():
+                got = self._answer(query.wait(self.config.request_timeout_s))
+                if got is None:  # each shard's own wait, not the replies read before it
+                    waited = query.ended_at - asked_at
                     if (out := shards.missed(shard, waited)) is not None:
                         log.info(f"replay shard {shard} did not answer ({waited:.1f} s): left "
                                  f"out of the batches for {out:.0f} s")

@@ -17,10 +17,11 @@ holds, and it takes its share from the next batch on.
 A shard that did not answer is left out for as long as the unanswered query waited (at least
 `probe_s`, at most `retry_s`): one that let a query time out would cost every batch that asks it
 the whole timeout, one that answered nothing at once (its routes being remade) costs nothing to
-ask again. A shard whose liveliness token goes is left out until it comes back, and asked again
-as soon as it does — also when it was left out for a miss: after the router hangs past its
-lease, the queries sent meanwhile end unanswered as the tokens go, and the tokens' return is
-the newer news.
+ask again. Each shard's wait is its own query's (`Gathered`: from the asking to the query's
+end), whatever order the replies are read in. A shard whose liveliness token goes is left out
+until it comes back, and asked again as soon as it does — also when it was left out for a miss:
+after the router hangs past its lease, the queries sent meanwhile end unanswered as the tokens
+go, and the tokens' return is the newer news.
 
 With one shard the learner does not use this: its requests and replies are today's.
 """
@@ -38,6 +39,30 @@ from tpdeb.protocol.messages import Moments, SampleReply
 from tpdeb.tpdeb_core.fragments import join_batches
 from tpdeb.tpdeb_core.moments import merge_moments
 from tpdeb.tpdeb_core.shards import ShardView, global_min_mass, global_weights, split_batch
+
+
+class Gathered:
+    """One shard's sample query: its replies as they come (a zenoh callback's thread) and when
+    the query ended (the handler dropped: all replies in, the timeout or a cancellation), so
+    that a shard's wait is timed by its own query, whatever the order the replies are read in."""
+
+    def __init__(self, clock: Callable[[], float] = time.monotonic):
+        self.clock, self.replies, self.ended_at = clock, [], None
+        self.ended = threading.Event()
+
+    def add(self, reply) -> None:
+        self.replies.append(reply)
+
+    def end(self) -> None:
+        self.ended_at = self.clock()
+        self.ended.set()
+
+    def wait(self, timeout_s: float) -> list:
+        """The replies once the query ended (at most `timeout_s` and a second: zenoh ends it
+        at its timeout; past that it counts as ended now)."""
+        if not self.ended.wait(timeout_s + 1.0):
+            self.ended_at = self.clock()
+        return list(self.replies)
 
 
 class ShardSet:

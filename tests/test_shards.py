@@ -21,7 +21,7 @@ from tpdeb.services.net.wire import run_spec
 from tpdeb.services.process import StopSignal
 from tpdeb.services.replay import ReplayServer
 from tpdeb.services.serial import SerialRunner
-from tpdeb.services.shards import ShardSet
+from tpdeb.services.shards import Gathered, ShardSet
 from tpdeb.tpdeb_core.fragments import stack_fragments
 from tpdeb.tpdeb_core.replay import DualReplay, ppo_per
 from tpdeb.tpdeb_core.shards import (
@@ -255,6 +255,21 @@ def test_a_shard_that_answered_nothing_at_once_is_asked_again_soon():
     assert shards.down() == [1] and shards.plan(8)[0].tolist() == [0, 8]
     shards.back(1)  # its token came back (the router's lease renewed): asked again at once
     assert shards.down() == []
+
+
+def test_a_query_is_timed_by_its_own_end_not_by_the_replies_read_before_it():
+    """Shard 1's query ended at once with nothing; shard 0's, read first, timed out later. Read
+    in that order, shard 1 is charged its own (short) wait, not shard 0's."""
+    now = [0.0]
+    first, second = Gathered(clock=lambda: now[0]), Gathered(clock=lambda: now[0])
+    second.end()  # nothing at once: its handler dropped at 0.0
+    now[0] = 12.0
+    first.add("late")
+    first.end()
+    assert first.wait(10.0) == ["late"] and first.ended_at == 12.0
+    assert second.wait(10.0) == [] and second.ended_at == 0.0
+    hung = Gathered(clock=lambda: now[0])  # never ended: counts as ended when the wait gives up
+    assert hung.wait(0.0) == [] and hung.ended_at == 12.0
 
 
 def test_joined_replies_are_one_batch_with_global_keys_weights_and_moments():

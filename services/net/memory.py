@@ -215,10 +215,27 @@ class MemorySession:
     def put(self, key: str, data: bytes) -> None:
         self.bus.put(str(key), data)
 
-    def get(self, selector: str, payload: bytes | None = None, timeout: float = 10.0,
-            cancellation_token=None) -> Iterator[MemoryReply]:
+    def get(self, selector: str, handler=None, payload: bytes | None = None,
+            timeout: float = 10.0, cancellation_token=None) -> Iterator[MemoryReply] | None:
         """The replies of every matching queryable, as they come, until each has finished its
-        query or `timeout` seconds pass."""
+        query or `timeout` seconds pass; given a callback `handler` (a `zenoh.handlers.Callback`:
+        its callback per reply, its drop when the query ends), they go to it from a thread of
+        their own, as Zenoh's would, and nothing is returned."""
+        replies = self._replies(selector, payload, timeout)
+        if handler is None:
+            return replies
+
+        def deliver() -> None:
+            for reply in replies:
+                handler.callback(reply)
+            if handler.drop is not None:
+                handler.drop()
+
+        threading.Thread(target=deliver, name="memory-query", daemon=True).start()
+        return None
+
+    def _replies(self, selector: str, payload: bytes | None,
+                 timeout: float) -> Iterator[MemoryReply]:
         key = str(selector).partition("?")[0]
         with self.bus._lock:
             answerers = [cb for pattern, cb in self.bus._queryables if matches(pattern, key)]
