@@ -400,11 +400,9 @@ class LearnerService:
         self.global_step = max(self.global_step, got.inserted_steps)
         return got if got.ready else None
 
-    def _ask(self, key: str, request: SampleRequest, gathered: Gathered | None = None):
-        """A sample query sent: its replies come through the handler returned, or are
-        `gathered` (then nothing is returned)."""
-        handler = None if gathered is None else zenoh.handlers.Callback(gathered.add,
-                                                                         gathered.end)
+    def _ask(self, key: str, request: SampleRequest, handler=None):
+        """A sample query sent: its replies come through the handler returned (Zenoh's
+        default), or through the callback `handler` given (then nothing is returned)."""
         return self.session.get(key, handler, payload=encode(request),
                                 timeout=self.config.request_timeout_s,
                                 cancellation_token=self.fetch_cancel)
@@ -440,7 +438,7 @@ class LearnerService:
                     asked[shard] = Gathered()
                     self._ask(self.shard_keys[shard].sample, SampleRequest(
                         request_id=request_id, batch_size=int(n_p + n_u), beta=beta,
-                        num_prioritized=int(n_p)), asked[shard])
+                        num_prioritized=int(n_p)), asked[shard].handler())
             missing = 0
             for shard, query in asked.items():
                 got = self._answer(query.wait(self.config.request_timeout_s))

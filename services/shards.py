@@ -34,6 +34,7 @@ import time
 from collections.abc import Callable, Sequence
 
 import numpy as np
+import zenoh
 
 from tpdeb.protocol.messages import Moments, SampleReply
 from tpdeb.tpdeb_core.fragments import join_batches
@@ -49,6 +50,10 @@ class Gathered:
     def __init__(self, clock: Callable[[], float] = time.monotonic):
         self.clock, self.replies, self.ended_at = clock, [], None
         self.ended = threading.Event()
+
+    def handler(self) -> zenoh.handlers.Callback:
+        """What the query is sent with: each reply added, the query's end recorded."""
+        return zenoh.handlers.Callback(self.add, self.end)
 
     def add(self, reply) -> None:
         self.replies.append(reply)

@@ -2,6 +2,7 @@
 
 import dataclasses
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -336,6 +337,10 @@ def test_a_request_cannot_ask_more_rows_from_bp_than_its_batch():
 
 @pytest.fixture
 def two_shards(tmp_path):
+    yield from shards_and_learner(tmp_path)
+
+
+def shards_and_learner(tmp_path, **learner_settings):
     """Two replay servers as shards 0 and 1 and a learner, on one in-memory bus."""
     bus = MemoryBus()
     settings = dict(run_id="t", env_id="Hopper-v5", fragment_len=T, batch_fragments=4,
@@ -347,7 +352,8 @@ def two_shards(tmp_path):
     assert spec.replay_shards == 2
     servers = [ReplayServer(config, spec, bus.session(), StopSignal()) for config in configs]
     learner = LearnerService(LearnerServiceConfig(run_dir=str(tmp_path), compile="off",
-                                                  **settings), spec, bus.session(), StopSignal())
+                                                  **settings, **learner_settings),
+                             spec, bus.session(), StopSignal())
     yield servers, learner, bus
     learner.metrics.close()
     for server in servers:
@@ -409,6 +415,21 @@ def test_a_shard_that_goes_leaves_the_batch_to_the_live_one(two_shards):
     for _ in range(10):
         batch = batch or fetch_while_serving(learner, servers[:1])
     assert batch is not None and {key % 2 for key in batch.keys.tolist()} == {0}
+
+
+def test_the_learner_charges_each_shard_its_own_query_wait(tmp_path):
+    """Shard 0 is asked first and answers nothing until its query times out (2 s); shard 1,
+    whose sample queryable is gone (its token still there), answers nothing at once. Shard 1 is
+    left out for the 1 s probe interval, not for the 2 s that shard 0's reading took."""
+    setup = shards_and_learner(tmp_path, request_timeout_s=2.0)
+    servers, learner, _ = next(setup)
+    try:
+        servers[1].queryables[0].undeclare()
+        assert learner.fetch_sharded(1) is None  # neither shard polled: no batch
+        left_out = [until - time.monotonic() for until in learner.shard_set.down_until]
+        assert 1.0 < left_out[0] <= 2.0 and 0.0 < left_out[1] < 1.0
+    finally:
+        next(setup, None)
 
 
 def test_the_cluster_starts_one_replay_per_shard_each_told_its_own(tmp_path):
