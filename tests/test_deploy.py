@@ -4,6 +4,7 @@ hostnames and volumes mapped onto this machine) and the image's Dockerfile."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import re
 import shutil
@@ -112,12 +113,21 @@ def actor_ids(procs, actors) -> list[str]:
     return sorted(re.search(r"actor (\d+): \d+ × ", procs.output(a)).group(1) for a in actors)
 
 
+def logged_bytes(replay_dir: Path) -> int:
+    """The bytes in a replay server's log segments (one rotated away meanwhile counts 0)."""
+    total = 0
+    for segment in replay_dir.glob("wal-*.log"):
+        with contextlib.suppress(FileNotFoundError):
+            total += segment.stat().st_size
+    return total
+
+
 def test_the_compose_services_run_as_the_engine_would_start_them(procs, tmp_path):
     """Each service's command and environment from the compose file (two actors, as with
     --scale actor=2), started in its depends_on order, each waited for by its own healthcheck:
     the actors get distinct ids, a replay server killed and started again (as the engine
     restarts it) restores its fragments from the fixed run directory, and the run finishes."""
-    services = compose_services({"TPDEB_ENV_ID": ENV, "TPDEB_TOTAL_TIMESTEPS": "20000",
+    services = compose_services({"TPDEB_ENV_ID": ENV, "TPDEB_TOTAL_TIMESTEPS": "40000",
                                  "TPDEB_NUM_ENVS": "2"})
     stack = Stack(procs, tmp_path, "router")
     envs = {name: stack.env(s.get("environment", {})) for name, s in services.items()}
@@ -131,7 +141,14 @@ def test_the_compose_services_run_as_the_engine_would_start_them(procs, tmp_path
     actors = [stack.start(f"actor-{i}", services["actor"]["command"], envs["actor"])
               for i in range(2)]
     learner = started["learner"]
-    procs.wait_for_line(learner, "SPS", timeout_s=120)  # training: fragments are in the log
+    # killed early in the run (a few thousand of its 40,000 steps logged), so that the run cannot
+    # end before the restarted server's healthcheck has seen it up: the actors wait for acks
+    # while it is down, so what is left after the restart is what was left at the kill
+    logged = tmp_path / "runs" / "compose" / "replay"
+    deadline = time.monotonic() + 120
+    while logged_bytes(logged) < 150_000:
+        assert time.monotonic() < deadline and learner.poll() is None, procs.output(learner)
+        time.sleep(0.1)
     started["replay"].kill()
     started["replay"].wait(10)
     replay = stack.start("replay-restarted", services["replay"]["command"], envs["replay"])
