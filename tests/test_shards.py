@@ -1,5 +1,6 @@
 """Replay shards: a batch split over K replays is the batch one replay of their union would draw."""
 
+import contextlib
 import dataclasses
 import threading
 import time
@@ -337,9 +338,11 @@ def test_a_request_cannot_ask_more_rows_from_bp_than_its_batch():
 
 @pytest.fixture
 def two_shards(tmp_path):
-    yield from shards_and_learner(tmp_path)
+    with shards_and_learner(tmp_path) as started:
+        yield started
 
 
+@contextlib.contextmanager
 def shards_and_learner(tmp_path, **learner_settings):
     """Two replay servers as shards 0 and 1 and a learner, on one in-memory bus."""
     bus = MemoryBus()
@@ -354,10 +357,12 @@ def shards_and_learner(tmp_path, **learner_settings):
     learner = LearnerService(LearnerServiceConfig(run_dir=str(tmp_path), compile="off",
                                                   **settings, **learner_settings),
                              spec, bus.session(), StopSignal())
-    yield servers, learner, bus
-    learner.metrics.close()
-    for server in servers:
-        server.close()
+    try:
+        yield servers, learner, bus
+    finally:
+        learner.metrics.close()
+        for server in servers:
+            server.close()
 
 
 def fetch_while_serving(learner, servers):
@@ -421,15 +426,11 @@ def test_the_learner_charges_each_shard_its_own_query_wait(tmp_path):
     """Shard 0 is asked first and answers nothing until its query times out (2 s); shard 1,
     whose sample queryable is gone (its token still there), answers nothing at once. Shard 1 is
     left out for the 1 s probe interval, not for the 2 s that shard 0's reading took."""
-    setup = shards_and_learner(tmp_path, request_timeout_s=2.0)
-    servers, learner, _ = next(setup)
-    try:
+    with shards_and_learner(tmp_path, request_timeout_s=2.0) as (servers, learner, _):
         servers[1].queryables[0].undeclare()
         assert learner.fetch_sharded(1) is None  # neither shard polled: no batch
         left_out = [until - time.monotonic() for until in learner.shard_set.down_until]
         assert 1.0 < left_out[0] <= 2.0 and 0.0 < left_out[1] < 1.0
-    finally:
-        next(setup, None)
 
 
 def test_the_cluster_starts_one_replay_per_shard_each_told_its_own(tmp_path):
